@@ -1,0 +1,275 @@
+"""The installed collision stage: model-time data, per-Data state and the step-time driver."""
+
+import dataclasses
+from typing import Optional
+
+import mujoco
+import numpy as np
+import warp as wp
+from mujoco_warp._src import collision_driver
+from mujoco_warp._src.collision_core import CollisionContext
+from mujoco_warp._src.types import DisableBit
+from mujoco_warp._src.types import EnableBit
+from mujoco_warp._src.types import GeomType
+from mujoco_warp._src.types import OverflowType
+
+from mjx_supportfield import broadphase
+from mjx_supportfield import narrowphase
+from mjx_supportfield.aabb import update_aabbs
+from mjx_supportfield.options import Options
+from mjx_supportfield.support_field import build_mesh_support
+from mjx_supportfield.types import CONVEX_TYPES
+from mjx_supportfield.types import STOCK_TYPES
+from mjx_supportfield.types import SUPPORT_MODE_ID
+
+_ATTR = "_mjx_supportfield_collider"
+_STATE_ATTR = "_mjx_supportfield_state"
+_GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
+
+
+@dataclasses.dataclass
+class DataState:
+  """Per-Data buffers: sizes depend on nworld, which install cannot know."""
+
+  nworld: int
+  aabb_lo: wp.array
+  aabb_hi: wp.array
+  nonfinite: wp.array  # per world: 1 if a geom pose held NaN/inf this step
+  sap_init: wp.array
+  order: wp.array
+  world_npair: wp.array
+  npair: wp.array
+  ndropped: wp.array
+  nwarned: wp.array
+  pair: wp.array
+  pairid: wp.array
+  pair_worldid: wp.array
+  stock_ctx: CollisionContext
+  capacity: int
+
+
+class Collider:
+  """Everything the plugin built for one MuJoCo Warp model (see ``install``)."""
+
+  def __init__(self, mjm: mujoco.MjModel, m, options: Options):
+    self.options = options
+    self.ngeom = mjm.ngeom
+    self.geom_names = [mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, i) or f"geom {i}" for i in range(mjm.ngeom)]
+    device = m.geom_type.device
+    self.device = device
+    with wp.ScopedDevice(device):
+      self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device)
+      geom_types = np.asarray(mjm.geom_type)
+      self.geom_stock = wp.array(np.isin(geom_types, [int(t) for t in STOCK_TYPES]).astype(np.int32), dtype=int)
+
+      pairs = np.asarray(m.nxn_geom_pair_filtered.numpy()).reshape(-1, 2)
+      pairids = np.asarray(m.nxn_pairid_filtered.numpy()).reshape(-1, 2)
+      explicit = (pairids[:, 0] >= 0) | (pairids[:, 1] >= 0)
+      self.nexplicit = int(explicit.sum())
+      self.explicit_pair = wp.array(pairs[explicit].astype(np.int32), dtype=wp.vec2i)
+      self.explicit_pairid = wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i)
+      # no world can have more pairs than the model allows after its static filters
+      self.max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
+      self.has_stock_pairs = bool(self.geom_stock.numpy().any()) or bool((pairids[:, 1] >= 0).any())
+
+      present = self._pair_types_present(mjm, pairs)
+      self.analytic_types = tuple(t for t in narrowphase.ANALYTIC_PAIRS if t in present)
+      mpr_table = np.zeros(narrowphase.NGEOMTYPE**2, dtype=np.int32)
+      self.mpr_types = []
+      for t1, t2 in present:
+        if (t1, t2) not in narrowphase.ANALYTIC_PAIRS and t1 in CONVEX_TYPES and t2 in CONVEX_TYPES:
+          mpr_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = 1
+          self.mpr_types.append((t1, t2))
+      self.mpr_pair_type = wp.array(mpr_table, dtype=int)
+
+  @staticmethod
+  def _pair_types_present(mjm, pairs):
+    """Ordered (type1 <= type2) geom-type pairs that the model can produce."""
+    types = set()
+    gt = np.asarray(mjm.geom_type)
+    for g1, g2 in pairs:
+      t1, t2 = sorted((int(gt[g1]), int(gt[g2])))
+      types.add((GeomType(t1), GeomType(t2)))
+    return types
+
+  # --- per-Data state -------------------------------------------------------------------
+
+  def state(self, m, d) -> DataState:
+    """State kept on ``d`` (created on its first collision): SAP order, pair buffers."""
+    states = getattr(d, _STATE_ATTR, None)
+    if states is None:
+      states = {}
+      object.__setattr__(d, _STATE_ATTR, states)
+    st = states.get(id(self))
+    if st is None:
+      self._check_data(m, d)
+      st = self._make_state(d)
+      states[id(self)] = st
+    return st
+
+  def _check_data(self, m, d):
+    shape = d.geom_xpos.shape
+    if len(shape) != 2 or shape[1] != self.ngeom:
+      raise ValueError(
+        f"mjx_supportfield: Data has geom_xpos of shape {tuple(shape)}, but the model has {self.ngeom} geoms;"
+        " was this Data made for another model?"
+      )
+
+  def _make_state(self, d) -> DataState:
+    nworld = d.nworld
+    capacity = nworld * self.max_pairs
+    with wp.ScopedDevice(self.device):
+      return DataState(
+        nworld=nworld,
+        aabb_lo=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
+        aabb_hi=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
+        nonfinite=wp.zeros(nworld, dtype=int),
+        sap_init=wp.zeros(nworld, dtype=int),
+        order=wp.zeros((nworld, max(self.ngeom, 1)), dtype=int),
+        world_npair=wp.zeros(nworld, dtype=int),
+        npair=wp.zeros(1, dtype=int),
+        ndropped=wp.zeros(nworld, dtype=int),
+        nwarned=wp.zeros(1, dtype=int),
+        pair=wp.zeros(capacity, dtype=wp.vec2i),
+        pairid=wp.zeros(capacity, dtype=wp.vec2i),
+        pair_worldid=wp.zeros(capacity, dtype=int),
+        stock_ctx=CollisionContext(
+          collision_pair=wp.zeros(d.naconmax, dtype=wp.vec2i),
+          collision_pairid=wp.zeros(d.naconmax, dtype=wp.vec2i),
+          collision_worldid=wp.zeros(d.naconmax, dtype=int),
+        ),
+        capacity=capacity,
+      )
+
+  # --- the collision stage ---------------------------------------------------------------
+
+  def collision(self, m, d, awake_prev: Optional[wp.array] = None):
+    """AABBs -> sweep-and-prune -> narrow phase, writing into ``d.contact`` / ``d.nacon``."""
+    if d.naconmax == 0 or m.opt.disableflags & (DisableBit.CONSTRAINT | DisableBit.CONTACT):
+      d.nacon.zero_()
+      return
+    st = self.state(m, d)
+    incremental = awake_prev is not None
+    d.ncollision.zero_()
+    if not incremental:
+      d.nacon.zero_()
+      st.ndropped.zero_()
+      st.nonfinite.zero_()
+    st.world_npair.zero_()
+    st.npair.zero_()
+    st.nwarned.zero_()
+
+    self._broadphase(m, d, st, awake_prev)
+    self._narrowphase(m, d, st)
+
+    if m.nflex > 0 and not incremental:
+      collision_driver.flex_collision(m, d, st.stock_ctx)
+    if m.flg_surfacevel:
+      wp.launch(
+        collision_driver._contact_surfacevel,
+        dim=d.naconmax,
+        inputs=[m.geom_surfacevel, d.geom_xpos, d.geom_xmat, d.contact.pos, d.contact.frame, d.contact.geom,
+                d.contact.worldid, d.naconmax, d.nacon],
+        outputs=[d.contact.surfacevel],
+      )
+    if m.callback.contactfilter:
+      m.callback.contactfilter(m, d)
+
+  def _broadphase(self, m, d, st: DataState, awake_prev):
+    wp.launch(
+      update_aabbs,
+      dim=(d.nworld, self.ngeom),
+      inputs=[m.geom_type, m.geom_dataid, m.geom_aabb, m.geom_margin, m.geom_gap, d.geom_xpos, d.geom_xmat],
+      outputs=[st.aabb_lo, st.aabb_hi, st.nonfinite],
+    )
+    enable_sleep = bool(m.opt.enableflags & EnableBit.SLEEP)
+    incremental = awake_prev is not None
+    key = (
+      int(m.opt.broadphase_filter),
+      m.geom_aabb.shape[0],
+      m.geom_rbound.shape[0],
+      m.geom_margin.shape[0],
+      m.geom_gap.shape[0],
+      m.pair_margin.shape[0],
+      m.pair_gap.shape[0],
+      enable_sleep,
+      incremental,
+    )
+    awake_prev_in = awake_prev if incremental else d.body_awake
+    warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
+    outputs = [
+      st.world_npair, st.npair, st.pair, st.pairid, st.pair_worldid, st.ndropped, st.nwarned, d.overflow, d.ncollision,
+      st.stock_ctx.collision_pair, st.stock_ctx.collision_pairid, st.stock_ctx.collision_worldid,
+    ]
+    common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                    m.pair_gap]
+    common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo,
+                   st.aabb_hi]
+    if self.ngeom > 1:
+      wp.launch(
+        broadphase.sweep_kernel(key, self.options.sap_axis),
+        dim=d.nworld,
+        inputs=[self.ngeom] + common_model + [m.nxn_pairid] + common_data
+        + [self.max_pairs, warn, st.sap_init, st.order],
+        outputs=outputs,
+      )
+    if self.nexplicit:
+      wp.launch(
+        broadphase.explicit_kernel(key),
+        dim=(d.nworld, self.nexplicit),
+        inputs=common_model + common_data + [self.explicit_pair, self.explicit_pairid, self.max_pairs, warn],
+        outputs=outputs,
+      )
+
+  def _contact_outputs(self, d):
+    c = d.contact
+    return [c.dist, c.pos, c.frame, c.includemargin, c.friction, c.solref, c.solreffriction, c.solimp, c.dim, c.geom,
+            c.efc_address, c.worldid, c.type, c.geomcollisionid, c.adhesion, d.nacon]
+
+  def _narrowphase(self, m, d, st: DataState):
+    nthread = max(1, min(st.capacity, _GRID_THREADS))
+    pair_inputs = [st.npair, st.pair, st.pairid, st.pair_worldid, nthread]
+    if self.analytic_types:
+      wp.launch(
+        narrowphase.analytic_kernel(self.analytic_types),
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.mesh_vertadr, m.mesh_vertnum,
+          m.mesh_graphadr, m.mesh_vert, m.mesh_graph, m.mesh_polynum, m.mesh_polyadr, m.mesh_polynormal,
+          m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
+          m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
+          m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
+        ] + pair_inputs,
+        outputs=self._contact_outputs(d),
+      )
+    if self.mpr_types:
+      wp.launch(
+        narrowphase.mpr_narrowphase,
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
+          m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
+          m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, self.mpr_pair_type,
+          SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
+        ] + pair_inputs,
+        outputs=self._contact_outputs(d),
+      )
+    if self.has_stock_pairs:
+      # heightfields, SDF geoms and collision-sensor pairs: MuJoCo Warp's own narrow phase
+      collision_driver._narrowphase(m, d, st.stock_ctx)
+
+  # --- diagnostics --------------------------------------------------------------------
+
+  def stats(self, d) -> dict:
+    """Host-side counters of the last collision on ``d`` (reads the device: not for graphs)."""
+    st = self.state(None, d) if getattr(d, _STATE_ATTR, None) else None
+    if st is None:
+      return {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": []}
+    return {
+      "pairs": int(st.npair.numpy()[0]),
+      "pairs_per_world": np.minimum(st.world_npair.numpy(), self.max_pairs).tolist(),
+      "dropped_pairs_per_world": st.ndropped.numpy().tolist(),
+      "nonfinite_worlds": np.nonzero(st.nonfinite.numpy())[0].tolist(),
+    }

@@ -1,0 +1,347 @@
+"""Narrow phase: analytic pairs through MuJoCo Warp's routines, the rest by support-field MPR.
+
+Both kernels walk the plugin's pair list with a grid-stride loop, so their launch size does
+not depend on the (host-unknown) number of pairs and they can be captured in a CUDA graph.
+"""
+
+import functools
+
+import warp as wp
+from mujoco_warp._src.collision_core import contact_params
+from mujoco_warp._src.collision_core import geom_collision_pair
+from mujoco_warp._src.collision_core import write_contact
+from mujoco_warp._src.collision_primitive import _PRIMITIVE_COLLISIONS
+from mujoco_warp._src.math import make_frame
+from mujoco_warp._src.types import GeomType
+from mujoco_warp._src.types import vec5
+
+from mjx_supportfield.mpr import mpr
+from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import Shape
+
+# pairs MuJoCo Warp solves in closed form (plane-*, sphere/capsule pairs, box-box, plane-mesh)
+ANALYTIC_PAIRS = tuple(_PRIMITIVE_COLLISIONS.keys())
+
+NGEOMTYPE = len(GeomType)
+
+
+@functools.lru_cache(maxsize=None)
+def analytic_kernel(pair_types: tuple):
+  """Grid-stride kernel running MuJoCo Warp's analytic routine of each pair type present."""
+  funcs = [_PRIMITIVE_COLLISIONS[t] for t in pair_types]
+
+  @wp.kernel(module="unique", enable_backward=False)
+  def analytic_narrowphase(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_condim: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_priority: wp.array(dtype=int),
+    geom_solmix: wp.array2d(dtype=float),
+    geom_solref: wp.array2d(dtype=wp.vec2),
+    geom_solimp: wp.array2d(dtype=vec5),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_friction: wp.array2d(dtype=wp.vec3),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    geom_adhesion: wp.array2d(dtype=float),
+    mesh_vertadr: wp.array(dtype=int),
+    mesh_vertnum: wp.array(dtype=int),
+    mesh_graphadr: wp.array(dtype=int),
+    mesh_vert: wp.array(dtype=wp.vec3),
+    mesh_graph: wp.array(dtype=int),
+    mesh_polynum: wp.array(dtype=int),
+    mesh_polyadr: wp.array(dtype=int),
+    mesh_polynormal: wp.array(dtype=wp.vec3),
+    mesh_polyvertadr: wp.array(dtype=int),
+    mesh_polyvertnum: wp.array(dtype=int),
+    mesh_polyvert: wp.array(dtype=int),
+    mesh_polymapadr: wp.array(dtype=int),
+    mesh_polymapnum: wp.array(dtype=int),
+    mesh_polymap: wp.array(dtype=int),
+    pair_dim: wp.array(dtype=int),
+    pair_solref: wp.array2d(dtype=wp.vec2),
+    pair_solreffriction: wp.array2d(dtype=wp.vec2),
+    pair_solimp: wp.array2d(dtype=vec5),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    pair_adhesion: wp.array2d(dtype=float),
+    pair_friction: wp.array2d(dtype=vec5),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    naconmax_in: int,
+    # In:
+    npair_in: wp.array(dtype=int),
+    pair_in: wp.array(dtype=wp.vec2i),
+    pairid_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    nthread: int,
+    # Data out:
+    contact_dist_out: wp.array(dtype=float),
+    contact_pos_out: wp.array(dtype=wp.vec3),
+    contact_frame_out: wp.array(dtype=wp.mat33),
+    contact_includemargin_out: wp.array(dtype=float),
+    contact_friction_out: wp.array(dtype=vec5),
+    contact_solref_out: wp.array(dtype=wp.vec2),
+    contact_solreffriction_out: wp.array(dtype=wp.vec2),
+    contact_solimp_out: wp.array(dtype=vec5),
+    contact_dim_out: wp.array(dtype=int),
+    contact_geom_out: wp.array(dtype=wp.vec2i),
+    contact_efc_address_out: wp.array2d(dtype=int),
+    contact_worldid_out: wp.array(dtype=int),
+    contact_type_out: wp.array(dtype=int),
+    contact_geomcollisionid_out: wp.array(dtype=int),
+    contact_adhesion_out: wp.array(dtype=float),
+    nacon_out: wp.array(dtype=int),
+  ):
+    tid = wp.tid()
+    for cid in range(tid, npair_in[0], nthread):
+      geoms = pair_in[cid]
+      type1 = geom_type[geoms[0]]
+      type2 = geom_type[geoms[1]]
+      worldid = pair_worldid_in[cid]
+      for i in range(wp.static(len(funcs))):
+        if type1 == wp.static(pair_types[i][0]) and type2 == wp.static(pair_types[i][1]):
+          _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+            geom_condim,
+            geom_priority,
+            geom_solmix,
+            geom_solref,
+            geom_solimp,
+            geom_friction,
+            geom_margin,
+            geom_gap,
+            geom_adhesion,
+            pair_dim,
+            pair_solref,
+            pair_solreffriction,
+            pair_solimp,
+            pair_margin,
+            pair_gap,
+            pair_adhesion,
+            pair_friction,
+            pair_in,
+            pairid_in,
+            cid,
+            worldid,
+          )
+          geom1, geom2 = geom_collision_pair(
+            geom_type,
+            geom_dataid,
+            geom_size,
+            mesh_vertadr,
+            mesh_vertnum,
+            mesh_graphadr,
+            mesh_vert,
+            mesh_graph,
+            mesh_polynum,
+            mesh_polyadr,
+            mesh_polynormal,
+            mesh_polyvertadr,
+            mesh_polyvertnum,
+            mesh_polyvert,
+            mesh_polymapadr,
+            mesh_polymapnum,
+            mesh_polymap,
+            geom_xpos_in,
+            geom_xmat_in,
+            geoms,
+            worldid,
+          )
+          wp.static(funcs[i])(
+            naconmax_in,
+            geom1,
+            geom2,
+            worldid,
+            margin,
+            gap,
+            condim,
+            friction,
+            solref,
+            solreffriction,
+            solimp,
+            adhesion,
+            geoms,
+            pairid_in[cid],
+            contact_dist_out,
+            contact_pos_out,
+            contact_frame_out,
+            contact_includemargin_out,
+            contact_friction_out,
+            contact_solref_out,
+            contact_solreffriction_out,
+            contact_solimp_out,
+            contact_dim_out,
+            contact_geom_out,
+            contact_efc_address_out,
+            contact_worldid_out,
+            contact_type_out,
+            contact_geomcollisionid_out,
+            contact_adhesion_out,
+            nacon_out,
+          )
+
+  return analytic_narrowphase
+
+
+@wp.func
+def _shape(
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  ms: MeshSupport,
+  geomid: int,
+  worldid: int,
+) -> Shape:
+  s = Shape()
+  s.gtype = geom_type[geomid]
+  s.pos = geom_xpos_in[worldid, geomid]
+  s.rot = geom_xmat_in[worldid, geomid]
+  s.size = geom_size[worldid % geom_size.shape[0], geomid]
+  s.mesh = -1
+  s.center = s.pos
+  s.inflate = 0.0
+  if s.gtype == GeomType.MESH:
+    s.mesh = geom_dataid[worldid % geom_dataid.shape[0], geomid]
+    s.center = s.pos + s.rot @ ms.hull_center[s.mesh]
+  return s
+
+
+@wp.kernel(enable_backward=False)
+def mpr_narrowphase(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_condim: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_priority: wp.array(dtype=int),
+  geom_solmix: wp.array2d(dtype=float),
+  geom_solref: wp.array2d(dtype=wp.vec2),
+  geom_solimp: wp.array2d(dtype=vec5),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_friction: wp.array2d(dtype=wp.vec3),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  geom_adhesion: wp.array2d(dtype=float),
+  pair_dim: wp.array(dtype=int),
+  pair_solref: wp.array2d(dtype=wp.vec2),
+  pair_solreffriction: wp.array2d(dtype=wp.vec2),
+  pair_solimp: wp.array2d(dtype=vec5),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  pair_adhesion: wp.array2d(dtype=float),
+  pair_friction: wp.array2d(dtype=vec5),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  naconmax_in: int,
+  # In:
+  ms: MeshSupport,
+  mpr_pair_type: wp.array(dtype=int),
+  support_mode: int,
+  tolerance: float,
+  iterations: int,
+  npair_in: wp.array(dtype=int),
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  nthread: int,
+  # Data out:
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """One deepest contact per convex pair, by MPR on the shapes' support functions."""
+  tid = wp.tid()
+  for cid in range(tid, npair_in[0], nthread):
+    geoms = pair_in[cid]
+    g1 = geoms[0]
+    g2 = geoms[1]
+    if mpr_pair_type[geom_type[g1] * wp.static(NGEOMTYPE) + geom_type[g2]] == 0:
+      continue
+    worldid = pair_worldid_in[cid]
+    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+      geom_condim,
+      geom_priority,
+      geom_solmix,
+      geom_solref,
+      geom_solimp,
+      geom_friction,
+      geom_margin,
+      geom_gap,
+      geom_adhesion,
+      pair_dim,
+      pair_solref,
+      pair_solreffriction,
+      pair_solimp,
+      pair_margin,
+      pair_gap,
+      pair_adhesion,
+      pair_friction,
+      pair_in,
+      pairid_in,
+      cid,
+      worldid,
+    )
+    a = _shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
+    b = _shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
+    # contacts are wanted up to margin + gap apart: grow A by that band, shrink the answer back
+    band = wp.max(margin + gap, 0.0)
+    a.inflate = band
+    rb = worldid % geom_rbound.shape[0]
+    scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
+    res = mpr(a, b, ms, support_mode, scale, tolerance, iterations)
+    if res.hit == 0:
+      continue
+    dist = band - res.depth
+    pos = res.pos - 0.5 * band * res.normal
+    write_contact(
+      naconmax_in,
+      0,
+      dist,
+      pos,
+      make_frame(res.normal),
+      margin,
+      gap,
+      condim,
+      friction,
+      solref,
+      solreffriction,
+      solimp,
+      adhesion,
+      geoms,
+      pairid_in[cid],
+      worldid,
+      contact_dist_out,
+      contact_pos_out,
+      contact_frame_out,
+      contact_includemargin_out,
+      contact_friction_out,
+      contact_solref_out,
+      contact_solreffriction_out,
+      contact_solimp_out,
+      contact_dim_out,
+      contact_geom_out,
+      contact_efc_address_out,
+      contact_worldid_out,
+      contact_type_out,
+      contact_geomcollisionid_out,
+      contact_adhesion_out,
+      nacon_out,
+    )

@@ -1,0 +1,62 @@
+"""Tuning parameters of the plugin."""
+
+import dataclasses
+import math
+
+SUPPORT_MODES = ("field", "refined", "exact")
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+  """Tuning parameters of the collision plugin; defaults follow the seed documents.
+
+  Attributes:
+    support_res: directions per axis of the support field (res x res cells per mesh).
+    support_mode: how a convex-mesh support query is answered: "field" (4-cell lookup),
+      "refined" (field vertex, then hill-climb on the convex-hull graph: exact), or "exact"
+      (exhaustive scan of the hull vertices).
+    max_collision_pairs: broad-phase pair budget per world; pairs beyond it are dropped,
+      counted and reported through ``d.overflow`` (``OverflowType.BROADPHASE``).
+    mpr_iterations: iteration cap of each MPR loop (portal discovery and refinement).
+    mpr_tolerance: MPR convergence tolerance, relative to the pair's size.
+    sap_axis: axis (0, 1, 2) on which the sweep-and-prune projects the boxes.
+  """
+
+  support_res: int = 180
+  support_mode: str = "refined"
+  max_collision_pairs: int = 4096
+  mpr_iterations: int = 50
+  mpr_tolerance: float = 1e-6
+  sap_axis: int = 0
+
+  def __post_init__(self):
+    _check_int("support_res", self.support_res, 4, 4096)
+    if self.support_mode not in SUPPORT_MODES:
+      raise ValueError(f"Options.support_mode: {self.support_mode!r} is not one of {', '.join(SUPPORT_MODES)}")
+    _check_int("max_collision_pairs", self.max_collision_pairs, 1, 1 << 24)
+    _check_int("mpr_iterations", self.mpr_iterations, 1, 10_000)
+    _check_float("mpr_tolerance", self.mpr_tolerance, 1e-12, 1e-2)
+    _check_int("sap_axis", self.sap_axis, 0, 2)
+
+  @classmethod
+  def from_dict(cls, values: dict) -> "Options":
+    """Builds Options from a mapping; an unknown key raises ValueError naming it."""
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+      raise ValueError(f"Options: unknown field(s) {', '.join(unknown)}; known fields: {', '.join(sorted(known))}")
+    return cls(**values)
+
+
+def _check_int(name, value, lo, hi):
+  if isinstance(value, bool) or not isinstance(value, int):
+    raise ValueError(f"Options.{name}: expected an integer, got {value!r}")
+  if not lo <= value <= hi:
+    raise ValueError(f"Options.{name}: {value} is outside [{lo}, {hi}]")
+
+
+def _check_float(name, value, lo, hi):
+  if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    raise ValueError(f"Options.{name}: expected a finite number, got {value!r}")
+  if not lo <= value <= hi:
+    raise ValueError(f"Options.{name}: {value} is outside [{lo}, {hi}]")

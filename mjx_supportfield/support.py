@@ -1,0 +1,133 @@
+"""Support functions: closed forms for primitives, the support field for convex meshes."""
+
+import warp as wp
+from mujoco_warp._src.types import GeomType
+
+from mjx_supportfield.types import SUPPORT_EXACT
+from mjx_supportfield.types import SUPPORT_REFINED
+from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import Shape
+
+
+@wp.func
+def hull_point(ms: MeshSupport, mesh: int, local: int) -> wp.vec3:
+  return ms.vert[ms.vertadr[mesh] + ms.hull_vert[ms.hull_adr[mesh] + local]]
+
+
+@wp.func
+def field_cell(ms: MeshSupport, mesh: int, i: int, j: int) -> int:
+  res = ms.field_res[mesh]
+  return ms.field[ms.field_adr[mesh] + j * res + i]
+
+
+@wp.func
+def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3) -> int:
+  """Best hull vertex among the 4 field cells bracketing direction d (mesh frame)."""
+  res = ms.field_res[mesh]
+  fres = float(res)
+  theta = wp.atan2(d[1], d[0])
+  phi = wp.acos(wp.clamp(d[2] / wp.max(wp.length(d), 1.0e-30), -1.0, 1.0))
+  u = (theta + wp.pi) / (2.0 * wp.pi) * fres
+  v = phi / wp.pi * (fres - 1.0)
+  i0 = int(wp.floor(u))
+  j0 = wp.clamp(int(wp.floor(v)), 0, res - 1)
+  i1 = (i0 + 1) % res
+  i0 = ((i0 % res) + res) % res
+  j1 = wp.min(j0 + 1, res - 1)
+
+  best = field_cell(ms, mesh, i0, j0)
+  best_dot = wp.dot(hull_point(ms, mesh, best), d)
+  for k in range(3):
+    i = wp.where(k == 1, i0, i1)
+    j = wp.where(k == 0, j0, j1)
+    c = field_cell(ms, mesh, i, j)
+    cd = wp.dot(hull_point(ms, mesh, c), d)
+    if cd > best_dot:
+      best = c
+      best_dot = cd
+  return best
+
+
+@wp.func
+def hill_climb(ms: MeshSupport, mesh: int, start: int, d: wp.vec3) -> int:
+  """Steepest ascent on the convex-hull graph; a local maximum is the global one."""
+  hadr = ms.hull_adr[mesh]
+  cur = start
+  cur_dot = wp.dot(hull_point(ms, mesh, cur), d)
+  for _ in range(ms.hull_num[mesh]):
+    nxt = cur
+    g = hadr + cur
+    adr = ms.nbr_adr[g]
+    for k in range(ms.nbr_num[g]):
+      nb = ms.nbr[adr + k]
+      nd = wp.dot(hull_point(ms, mesh, nb), d)
+      if nd > cur_dot:
+        nxt = nb
+        cur_dot = nd
+    if nxt == cur:
+      break
+    cur = nxt
+  return cur
+
+
+@wp.func
+def hull_scan(ms: MeshSupport, mesh: int, d: wp.vec3) -> int:
+  """Exhaustive scan of the hull vertices (first maximum wins)."""
+  best = int(0)
+  best_dot = float(-1.0e30)
+  for k in range(ms.hull_num[mesh]):
+    kd = wp.dot(hull_point(ms, mesh, k), d)
+    if kd > best_dot:
+      best = k
+      best_dot = kd
+  return best
+
+
+@wp.func
+def mesh_support_index(ms: MeshSupport, mesh: int, d: wp.vec3, mode: int) -> int:
+  """Local hull index of the support vertex of a mesh in direction d (mesh frame)."""
+  if mode == SUPPORT_EXACT or ms.field_res[mesh] == 0:
+    return hull_scan(ms, mesh, d)
+  best = field_lookup(ms, mesh, d)
+  if mode == SUPPORT_REFINED:
+    best = hill_climb(ms, mesh, best, d)
+  return best
+
+
+@wp.func
+def support_local(gtype: int, size: wp.vec3, mesh: int, ms: MeshSupport, d: wp.vec3, mode: int) -> wp.vec3:
+  """Support point of a geom in its own frame for direction d (need not be unit)."""
+  if gtype == GeomType.SPHERE:
+    return size[0] * wp.normalize(d)
+  if gtype == GeomType.BOX:
+    return wp.vec3(
+      wp.where(d[0] >= 0.0, size[0], -size[0]),
+      wp.where(d[1] >= 0.0, size[1], -size[1]),
+      wp.where(d[2] >= 0.0, size[2], -size[2]),
+    )
+  if gtype == GeomType.CAPSULE:
+    return wp.vec3(0.0, 0.0, wp.where(d[2] >= 0.0, size[1], -size[1])) + size[0] * wp.normalize(d)
+  if gtype == GeomType.ELLIPSOID:
+    s2 = wp.cw_mul(wp.cw_mul(size, size), d)
+    return s2 / wp.max(wp.sqrt(wp.dot(s2, d)), 1.0e-30)
+  if gtype == GeomType.CYLINDER:
+    rxy = wp.sqrt(d[0] * d[0] + d[1] * d[1])
+    x = float(0.0)
+    y = float(0.0)
+    if rxy > 1.0e-12:
+      x = size[0] * d[0] / rxy
+      y = size[0] * d[1] / rxy
+    return wp.vec3(x, y, wp.where(d[2] >= 0.0, size[1], -size[1]))
+  if gtype == GeomType.MESH:
+    return hull_point(ms, mesh, mesh_support_index(ms, mesh, d, mode))
+  return wp.vec3(0.0)
+
+
+@wp.func
+def support_world(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> wp.vec3:
+  """Support point of a posed shape (inflated by s.inflate) for world direction d."""
+  local = support_local(s.gtype, s.size, s.mesh, ms, wp.transpose(s.rot) @ d, mode)
+  p = s.pos + s.rot @ local
+  if s.inflate > 0.0:
+    p = p + s.inflate * wp.normalize(d)
+  return p

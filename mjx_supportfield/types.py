@@ -1,0 +1,54 @@
+"""Device-side types shared by the pipeline stages."""
+
+import warp as wp
+from mujoco_warp._src.types import GeomType
+
+# support_mode as passed to kernels
+SUPPORT_FIELD = 0
+SUPPORT_REFINED = 1
+SUPPORT_EXACT = 2
+SUPPORT_MODE_ID = {"field": SUPPORT_FIELD, "refined": SUPPORT_REFINED, "exact": SUPPORT_EXACT}
+
+# geom types the plugin's own narrow phase handles (everything convex but hfield / sdf / flex)
+CONVEX_TYPES = (GeomType.SPHERE, GeomType.CAPSULE, GeomType.ELLIPSOID, GeomType.CYLINDER, GeomType.BOX, GeomType.MESH)
+# geom types whose pairs go to stock MuJoCo Warp
+STOCK_TYPES = (GeomType.HFIELD, GeomType.SDF)
+
+# pair classes written by the broad phase
+PAIR_PLUGIN = 0
+PAIR_STOCK = 1
+
+
+@wp.struct
+class MeshSupport:
+  """Convex-hull data and support fields of all meshes, flattened with per-mesh offsets.
+
+  Hull vertices are numbered globally (``hull_adr[mesh] + local``); the field stores local
+  indices so one cell costs 4 bytes.
+  """
+
+  vert: wp.array(dtype=wp.vec3)  # MuJoCo's mesh_vert, mesh frame
+  vertadr: wp.array(dtype=int)  # per mesh: first vertex in vert
+  hull_adr: wp.array(dtype=int)  # per mesh: first hull vertex
+  hull_num: wp.array(dtype=int)  # per mesh: number of hull vertices
+  hull_center: wp.array(dtype=wp.vec3)  # per mesh: mean of the hull vertices (interior point)
+  hull_vert: wp.array(dtype=int)  # per hull vertex: vertex index within its mesh
+  nbr_adr: wp.array(dtype=int)  # per hull vertex: first neighbour in nbr
+  nbr_num: wp.array(dtype=int)  # per hull vertex: number of neighbours
+  nbr: wp.array(dtype=int)  # neighbour hull vertices (local indices)
+  field_adr: wp.array(dtype=int)  # per mesh: first cell of its field
+  field_res: wp.array(dtype=int)  # per mesh: field resolution (0: no field)
+  field: wp.array(dtype=int)  # per cell: local hull index of the support vertex
+
+
+@wp.struct
+class Shape:
+  """A convex geom posed in the world, as seen by the support functions."""
+
+  gtype: int
+  pos: wp.vec3
+  rot: wp.mat33
+  size: wp.vec3
+  mesh: int  # mesh id for MESH geoms, else -1
+  center: wp.vec3  # interior point (world)
+  inflate: float  # radius added to the support (margin handling)

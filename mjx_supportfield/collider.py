@@ -1,6 +1,7 @@
 """The installed collision stage: model-time data, per-Data state and the step-time driver."""
 
 import dataclasses
+import weakref
 from typing import Optional
 
 import mujoco
@@ -53,7 +54,7 @@ class Collider:
 
   def __init__(self, mjm: mujoco.MjModel, m, options: Options):
     self.options = options
-    self.ngeom = mjm.ngeom
+    self.ngeom, self.nq, self.nbody = mjm.ngeom, mjm.nq, mjm.nbody
     self.geom_names = [mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, i) or f"geom {i}" for i in range(mjm.ngeom)]
     device = m.geom_type.device
     self.device = device
@@ -98,22 +99,23 @@ class Collider:
     """State kept on ``d`` (created on its first collision): SAP order, pair buffers."""
     states = getattr(d, _STATE_ATTR, None)
     if states is None:
-      states = {}
+      states = weakref.WeakKeyDictionary()  # a Collider that is gone takes its state along
       object.__setattr__(d, _STATE_ATTR, states)
-    st = states.get(id(self))
+    st = states.get(self)
     if st is None:
-      self._check_data(m, d)
+      self._check_data(d)
       st = self._make_state(d)
-      states[id(self)] = st
+      states[self] = st
     return st
 
-  def _check_data(self, m, d):
-    shape = d.geom_xpos.shape
-    if len(shape) != 2 or shape[1] != self.ngeom:
-      raise ValueError(
-        f"mjx_supportfield: Data has geom_xpos of shape {tuple(shape)}, but the model has {self.ngeom} geoms;"
-        " was this Data made for another model?"
-      )
+  def _check_data(self, d):
+    for field, want in (("geom_xpos", self.ngeom), ("qpos", self.nq), ("xpos", self.nbody)):
+      shape = getattr(d, field).shape
+      if len(shape) != 2 or shape[1] != want:
+        raise ValueError(
+          f"mjx_supportfield: Data.{field} has shape {tuple(shape)} but the model needs (nworld, {want});"
+          " was this Data made for another model?"
+        )
 
   def _make_state(self, d) -> DataState:
     nworld = d.nworld
@@ -253,6 +255,7 @@ class Collider:
           m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
           m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, self.mpr_pair_type,
           SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
+          self.options.mpr_refine,
         ] + pair_inputs,
         outputs=self._contact_outputs(d),
       )
@@ -263,8 +266,12 @@ class Collider:
   # --- diagnostics --------------------------------------------------------------------
 
   def stats(self, d) -> dict:
-    """Host-side counters of the last collision on ``d`` (reads the device: not for graphs)."""
-    st = self.state(None, d) if getattr(d, _STATE_ATTR, None) else None
+    """Host-side counters of the last collision on ``d`` (reads the device: not for graphs).
+
+    With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
+    """
+    states = getattr(d, _STATE_ATTR, None)
+    st = states.get(self) if states is not None else None
     if st is None:
       return {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": []}
     return {

@@ -65,75 +65,48 @@ def _single_point(p: Vertex) -> MprResult:
 
 
 @wp.func
-def _closest_on_triangle(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
-  """Point of triangle abc closest to the origin (Voronoi-region walk)."""
-  ab = b - a
-  ac = c - a
-  ap = -a
-  d1 = wp.dot(ab, ap)
-  d2 = wp.dot(ac, ap)
-  if d1 <= 0.0 and d2 <= 0.0:
-    return a
-  bp = -b
-  d3 = wp.dot(ab, bp)
-  d4 = wp.dot(ac, bp)
-  if d3 >= 0.0 and d4 <= d3:
-    return b
-  vc = d1 * d4 - d3 * d2
-  if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-    return a + (d1 / (d1 - d3)) * ab
-  cp = -c
-  d5 = wp.dot(ab, cp)
-  d6 = wp.dot(ac, cp)
-  if d6 >= 0.0 and d5 <= d6:
-    return c
-  vb = d5 * d2 - d1 * d6
-  if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-    return a + (d2 / (d2 - d6)) * ac
-  va = d3 * d6 - d5 * d4
-  if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-    return b + ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * (c - b)
-  denom = 1.0 / (va + vb + vc)
-  return a + ab * (vb * denom) + ac * (vc * denom)
+def _midpoint(p1: Vertex, p2: Vertex, p3: Vertex, w: wp.vec3) -> wp.vec3:
+  """Midpoint of the two shapes' points at w, a point of the portal triangle (barycentric)."""
+  e1 = p2.v - p1.v
+  e2 = p3.v - p1.v
+  r = w - p1.v
+  d11 = wp.dot(e1, e1)
+  d12 = wp.dot(e1, e2)
+  d22 = wp.dot(e2, e2)
+  det = d11 * d22 - d12 * d12
+  l2 = float(0.0)
+  l3 = float(0.0)
+  if det > 0.0:
+    r1 = wp.dot(r, e1)
+    r2 = wp.dot(r, e2)
+    l2 = wp.clamp((d22 * r1 - d12 * r2) / det, 0.0, 1.0)
+    l3 = wp.clamp((d11 * r2 - d12 * r1) / det, 0.0, 1.0 - l2)
+  l1 = 1.0 - l2 - l3
+  return 0.5 * (l1 * (p1.a + p1.b) + l2 * (p2.a + p2.b) + l3 * (p3.a + p3.b))
 
 
 @wp.func
-def _midpoint(p0: Vertex, p1: Vertex, p2: Vertex, p3: Vertex, n: wp.vec3) -> wp.vec3:
-  """Barycentric projection of the origin into the portal, applied to both shapes' points."""
-  b0 = wp.dot(wp.cross(p1.v, p2.v), p3.v)
-  b1 = wp.dot(wp.cross(p3.v, p2.v), p0.v)
-  b2 = wp.dot(wp.cross(p0.v, p1.v), p3.v)
-  b3 = wp.dot(wp.cross(p2.v, p1.v), p0.v)
-  s = b0 + b1 + b2 + b3
-  if s <= 0.0:
-    b0 = 0.0
-    b1 = wp.dot(wp.cross(p2.v, p3.v), n)
-    b2 = wp.dot(wp.cross(p3.v, p1.v), n)
-    b3 = wp.dot(wp.cross(p1.v, p2.v), n)
-    s = b1 + b2 + b3
-  if s == 0.0:
-    return 0.25 * (p1.a + p1.b + p2.a + p2.b)
-  inv = 1.0 / s
-  pa = (b0 * p0.a + b1 * p1.a + b2 * p2.a + b3 * p3.a) * inv
-  pb = (b0 * p0.b + b1 * p1.b + b2 * p2.b + b3 * p3.b) * inv
-  return 0.5 * (pa + pb)
+def interior_point(a: Shape, b: Shape, scale: float) -> Vertex:
+  """The centre difference, nudged off the origin: an interior point of A - B."""
+  p0 = Vertex()
+  p0.a = a.center
+  p0.b = b.center
+  p0.v = a.center - b.center
+  if wp.length(p0.v) < 1.0e-10 * scale:
+    p0.a = a.center + wp.vec3(1.0e-6 * scale, 0.0, 0.0)
+    p0.v = p0.a - p0.b
+  return p0
 
 
 @wp.func
-def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int) -> MprResult:
-  """Penetration of A and B by MPR; hit == 0 when they do not overlap.
+def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float, tol: float, iterations: int) -> MprResult:
+  """Penetration of A and B by MPR from interior point p0 of A - B; hit == 0 when they do not overlap.
 
   scale: a length of the pair (degeneracy thresholds are relative to it); tol: convergence
   tolerance relative to scale; iterations: cap of each loop (no unbounded loop on the GPU).
   """
   eps = 1.0e-10 * scale
   atol = tol * scale
-  p0 = Vertex()
-  p0.a = a.center
-  p0.b = b.center
-  p0.v = a.center - b.center
-  if wp.length(p0.v) < eps:
-    p0.v = wp.vec3(1.0e-6 * scale, 0.0, 0.0)
 
   # portal discovery
   d = wp.normalize(-p0.v)
@@ -206,14 +179,36 @@ def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float
   if inside == 0 and wp.dot(n, p1.v) < 0.0:
     return _miss()
 
+  # the portal lies on the boundary of A - B: its plane's distance to the origin is the
+  # depth along its normal (on curved boundaries the plane is the tangent plane there)
   r = MprResult()
   r.hit = 1
-  w = _closest_on_triangle(p1.v, p2.v, p3.v)
-  depth = wp.length(w)
-  r.depth = depth
-  if depth > eps:
-    r.normal = w / depth
-  else:
-    r.normal = n
-  r.pos = _midpoint(p0, p1, p2, p3, r.normal)
+  r.normal = n
+  r.depth = wp.max(wp.dot(n, p1.v), 0.0)
+  r.pos = _midpoint(p1, p2, p3, r.depth * n)
   return r
+
+
+
+@wp.func
+def mpr_refined(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int, refine: int) -> MprResult:
+  """MPR, then up to ``refine`` reruns along the last normal; the shallowest answer wins.
+
+  MPR answers where the ray from its interior point through the origin leaves A - B: the
+  penetration along the centre-to-centre line, not the smallest one. Restarting from a
+  point just behind the origin (-depth/2 along the normal) sends the ray along the normal;
+  on curved surfaces this walks to the point whose surface normal is the ray, the minimum.
+  """
+  best = mpr(a, b, ms, mode, interior_point(a, b, scale), scale, tol, iterations)
+  if best.hit == 0:
+    return best
+  for _ in range(refine):
+    if best.depth <= 1.0e-6 * scale:
+      break
+    q0 = Vertex()
+    q0.v = -0.5 * best.depth * best.normal
+    r = mpr(a, b, ms, mode, q0, scale, tol, iterations)
+    if r.hit == 0 or r.depth >= best.depth - tol * scale:
+      break
+    best = r
+  return best

@@ -15,7 +15,7 @@ from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
-from mjx_supportfield.mpr import mpr
+from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -244,6 +244,7 @@ def mpr_narrowphase(
   support_mode: int,
   tolerance: float,
   iterations: int,
+  refine: int,
   npair_in: wp.array(dtype=int),
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
@@ -306,7 +307,7 @@ def mpr_narrowphase(
     a.inflate = band
     rb = worldid % geom_rbound.shape[0]
     scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
-    res = mpr(a, b, ms, support_mode, scale, tolerance, iterations)
+    res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
     if res.hit == 0:
       continue
     dist = band - res.depth

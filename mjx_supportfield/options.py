@@ -19,6 +19,8 @@ class Options:
       counted and reported through ``d.overflow`` (``OverflowType.BROADPHASE``).
     mpr_iterations: iteration cap of each MPR loop (portal discovery and refinement).
     mpr_tolerance: MPR convergence tolerance, relative to the pair's size.
+    mpr_refine: MPR reruns along the last normal (the shallowest answer wins); 0 = plain MPR,
+      which reports the penetration along the centre-to-centre line.
     sap_axis: axis (0, 1, 2) on which the sweep-and-prune projects the boxes.
   """
 
@@ -27,6 +29,7 @@ class Options:
   max_collision_pairs: int = 4096
   mpr_iterations: int = 50
   mpr_tolerance: float = 1e-6
+  mpr_refine: int = 4
   sap_axis: int = 0
 
   def __post_init__(self):
@@ -36,6 +39,7 @@ class Options:
     _check_int("max_collision_pairs", self.max_collision_pairs, 1, 1 << 24)
     _check_int("mpr_iterations", self.mpr_iterations, 1, 10_000)
     _check_float("mpr_tolerance", self.mpr_tolerance, 1e-12, 1e-2)
+    _check_int("mpr_refine", self.mpr_refine, 0, 32)
     _check_int("sap_axis", self.sap_axis, 0, 2)
 
   @classmethod

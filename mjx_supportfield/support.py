@@ -17,7 +17,7 @@ def hull_point(ms: MeshSupport, mesh: int, local: int) -> wp.vec3:
 @wp.func
 def field_cell(ms: MeshSupport, mesh: int, i: int, j: int) -> int:
   res = ms.field_res[mesh]
-  return ms.field[ms.field_adr[mesh] + j * res + i]
+  return int(ms.field[ms.field_adr[mesh] + j * res + i])
 
 
 @wp.func
@@ -131,3 +131,56 @@ def support_world(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> wp.vec3:
   if s.inflate > 0.0:
     p = p + s.inflate * wp.normalize(d)
   return p
+
+
+TIE_STACK = 64  # largest tie set count_supports walks; larger ones report TIE_STACK
+_tie_stack = wp.types.vector(length=TIE_STACK, dtype=int)
+
+
+@wp.func
+def count_supports(gtype: int, size: wp.vec3, mesh: int, ms: MeshSupport, d: wp.vec3, rtol: float) -> int:
+  """Number of distinct support points of a geom for direction d (its frame).
+
+  A vertex ties when its dot product is within rtol (relative to the shape's extent) of
+  the maximum. Boxes: 2^(axes with d ~ 0). Meshes: the tied vertices form a face or an
+  edge of the hull, which is connected in the hull graph, so a flood fill from the exact
+  support vertex finds them all. Curved primitives have a unique support point (1).
+  """
+  dn = wp.normalize(d)
+  if gtype == GeomType.BOX:
+    n = int(1)
+    for k in range(3):
+      if wp.abs(dn[k]) * size[k] <= rtol * wp.length(size):
+        n *= 2
+    return n
+  if gtype == GeomType.MESH:
+    best = mesh_support_index(ms, mesh, dn, SUPPORT_REFINED)
+    top = wp.dot(hull_point(ms, mesh, best), dn)
+    extent = wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh])
+    tol = rtol * wp.max(extent, 1.0e-12)
+    if ms.nbr_num.shape[0] == 0 or ms.nbr_num[ms.hull_adr[mesh] + best] == 0:
+      n = int(0)  # no hull graph: scan
+      for k in range(ms.hull_num[mesh]):
+        if wp.dot(hull_point(ms, mesh, k), dn) >= top - tol:
+          n += 1
+      return n
+    stack = _tie_stack()
+    stack[0] = best
+    count = int(1)
+    head = int(0)
+    hadr = ms.hull_adr[mesh]
+    while head < count:
+      g = hadr + stack[head]
+      head += 1
+      for k in range(ms.nbr_num[g]):
+        nb = ms.nbr[ms.nbr_adr[g] + k]
+        if wp.dot(hull_point(ms, mesh, nb), dn) >= top - tol:
+          seen = bool(False)
+          for s in range(count):
+            if stack[s] == nb:
+              seen = True
+          if not seen and count < TIE_STACK:
+            stack[count] = nb
+            count += 1
+    return count
+  return 1

@@ -1,4 +1,14 @@
-"""Builds the support field of every mesh from MuJoCo's convex hulls."""
+"""Builds the support field of every mesh from MuJoCo's convex hulls.
+
+A field is a lat-long grid of ``res x res`` directions per mesh; each cell stores the
+16-bit local index of the hull vertex that is extreme in that direction (positions are
+gathered from MuJoCo's ``mesh_vert``), so a cell costs 2 bytes instead of the seed's 16.
+Geoms that share a mesh share its field. Each mesh gets one resolution step above the
+smallest (up to 64) at which the plain 4-cell lookup (``support_mode="field"``) returns the
+exact support on a dense check set (4 directions inside every cell plus random ones), else
+``Options.support_res``. The check set is not a proof: ``field`` mode stays approximate,
+``refined`` is exact.
+"""
 
 import dataclasses
 
@@ -6,7 +16,21 @@ import mujoco
 import numpy as np
 import warp as wp
 
+from mjx_supportfield.support import field_lookup
+from mjx_supportfield.support import hill_climb
+from mjx_supportfield.support import hull_point
+from mjx_supportfield.support import hull_scan
 from mjx_supportfield.types import MeshSupport
+
+# candidate resolutions, coarse to fine (the cap Options.support_res is always a candidate)
+_RESOLUTIONS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 180, 256, 360, 512, 1024, 2048, 4096)
+_NCHECK_RANDOM = 1024  # random check directions per mesh, besides the in-cell samples
+_NCHECK_SUB = 2  # in-cell samples per cell side
+# coarser grids are tried up to this resolution; generic (non-polyhedral-grid) hulls never
+# become exact at any finite resolution, since near each face normal three or more vertex
+# cones meet inside one cell, so those meshes get the cap without paying for finer checks
+_ADAPTIVE_MAX = 64
+_MAX_HULL = 65535  # largest hull a 16-bit field can index
 
 
 @dataclasses.dataclass
@@ -22,105 +46,183 @@ class HullData:
   nbr: np.ndarray
 
 
-def mesh_hull(mjm: mujoco.MjModel, meshid: int):
-  """Hull vertex ids (within the mesh) and neighbour lists of one mesh.
+def mesh_hull(mjm: mujoco.MjModel, meshid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """Hull vertex ids (within the mesh), neighbour counts and flat neighbour lists of a mesh.
 
-  Uses MuJoCo's convex-hull graph; a mesh without one uses all its vertices and no
-  neighbours (support queries then scan or use the field alone).
+  Reads MuJoCo's convex-hull graph (numvert, numface, vert_edgeadr[nv], vert_globalid[nv],
+  -1-terminated neighbour lists, faces). A mesh without one uses all its vertices and no
+  neighbours (its queries then use the field or a scan).
   """
   adr = mjm.mesh_graphadr[meshid]
   if adr < 0:
     n = int(mjm.mesh_vertnum[meshid])
-    return np.arange(n, dtype=np.int32), [[] for _ in range(n)]
+    return np.arange(n, dtype=np.int32), np.zeros(n, np.int32), np.zeros(0, np.int32)
   g = mjm.mesh_graph
   nv = int(g[adr])
-  edgeadr = g[adr + 2 : adr + 2 + nv]
-  globalid = np.array(g[adr + 2 + nv : adr + 2 + 2 * nv], dtype=np.int32)
-  edges = g[adr + 2 + 2 * nv :]
-  nbrs = []
-  for i in range(nv):
-    k = int(edgeadr[i])
-    lst = []
-    while edges[k] >= 0:
-      lst.append(int(edges[k]))
-      k += 1
-    nbrs.append(lst)
-  return globalid, nbrs
+  edgeadr = np.asarray(g[adr + 2 : adr + 2 + nv], dtype=np.int64)
+  globalid = np.asarray(g[adr + 2 + nv : adr + 2 + 2 * nv], dtype=np.int32)
+  edges = np.asarray(g[adr + 2 + 2 * nv :])
+  ends = np.nonzero(edges == -1)[0][:nv]
+  # the lists are stored back to back, each ended by -1
+  if len(ends) < nv or edgeadr[0] != 0 or np.any(edgeadr[1:] != ends[:-1] + 1):
+    raise ValueError(f"mesh {meshid}: MuJoCo's convex-hull graph has an unexpected layout")
+  lists = edges[: ends[-1] + 1]
+  return globalid, (ends - edgeadr).astype(np.int32), lists[lists >= 0].astype(np.int32)
 
 
 def hull_data(mjm: mujoco.MjModel) -> HullData:
   """Flattens the hulls of all meshes of a model."""
-  hull_adr, hull_num, hull_vert, centers, nbr_num, nbr = [], [], [], [], [], []
-  total = 0
-  for meshid in range(mjm.nmesh):
-    verts, nbrs = mesh_hull(mjm, meshid)
-    hull_adr.append(total)
-    hull_num.append(len(verts))
-    total += len(verts)
-    hull_vert.append(verts)
-    vadr = mjm.mesh_vertadr[meshid]
-    centers.append(mjm.mesh_vert[vadr + verts].mean(axis=0) if len(verts) else np.zeros(3))
-    nbr_num.extend(len(x) for x in nbrs)
-    nbr.extend(v for x in nbrs for v in x)
-  nbr_num = np.array(nbr_num, dtype=np.int32)
-  nbr_adr = np.concatenate([[0], np.cumsum(nbr_num)[:-1]]).astype(np.int32) if len(nbr_num) else np.zeros(0, np.int32)
+  parts = [mesh_hull(mjm, i) for i in range(mjm.nmesh)]
+  hull_num = np.array([len(p[0]) for p in parts], dtype=np.int32)
+  nbr_num = np.concatenate([p[1] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32)
+  centers = [
+    mjm.mesh_vert[mjm.mesh_vertadr[i] + p[0]].mean(axis=0) if len(p[0]) else np.zeros(3) for i, p in enumerate(parts)
+  ]
   return HullData(
-    hull_adr=np.array(hull_adr, dtype=np.int32),
-    hull_num=np.array(hull_num, dtype=np.int32),
-    hull_vert=np.concatenate(hull_vert).astype(np.int32) if hull_vert else np.zeros(0, np.int32),
+    hull_adr=np.concatenate([[0], np.cumsum(hull_num)[:-1]]).astype(np.int32) if parts else np.zeros(0, np.int32),
+    hull_num=hull_num,
+    hull_vert=np.concatenate([p[0] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32),
     hull_center=np.array(centers, dtype=np.float32).reshape(-1, 3),
-    nbr_adr=nbr_adr,
+    nbr_adr=np.concatenate([[0], np.cumsum(nbr_num)[:-1]]).astype(np.int32) if len(nbr_num) else np.zeros(0, np.int32),
     nbr_num=nbr_num,
-    nbr=np.array(nbr, dtype=np.int32),
+    nbr=np.concatenate([p[2] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32),
   )
 
 
 @wp.func
-def cell_direction(i: int, j: int, res: int) -> wp.vec3:
-  """Direction of field cell (i, j): theta = 2 pi i / res - pi, phi = pi j / (res - 1)."""
-  theta = 2.0 * wp.pi * float(i) / float(res) - wp.pi
-  phi = wp.pi * float(j) / float(res - 1)
+def cell_direction(u: float, v: float, res: int) -> wp.vec3:
+  """Direction at continuous cell coordinates (u, v): theta = 2 pi u / res - pi, phi = pi v / (res - 1).
+
+  Row v = 0 is the +z pole and row v = res - 1 the -z pole, so both poles are sampled.
+  """
+  theta = 2.0 * wp.pi * u / float(res) - wp.pi
+  phi = wp.pi * wp.min(v, float(res - 1)) / float(res - 1)
   return wp.vec3(wp.sin(phi) * wp.cos(theta), wp.sin(phi) * wp.sin(theta), wp.cos(phi))
 
 
 @wp.kernel
-def _build_field(
-  ms: MeshSupport,
-  cell_mesh: wp.array(dtype=int),
-  # out
-  field_out: wp.array(dtype=int),
-):
+def _build_field(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16)):
   cell = wp.tid()
   mesh = cell_mesh[cell]
   res = ms.field_res[mesh]
-  local_cell = cell - ms.field_adr[mesh]
-  d = cell_direction(local_cell % res, local_cell // res, res)
-  hadr = ms.hull_adr[mesh]
-  vadr = ms.vertadr[mesh]
-  best = int(0)
-  best_dot = float(-1.0e30)
-  for k in range(ms.hull_num[mesh]):
-    kd = wp.dot(ms.vert[vadr + ms.hull_vert[hadr + k]], d)
-    if kd > best_dot:
-      best = k
-      best_dot = kd
-  field_out[cell] = best
+  local = cell - ms.field_adr[mesh]
+  d = cell_direction(float(local % res), float(local // res), res)
+  field_out[cell] = wp.uint16(hull_scan(ms, mesh, d))
 
 
-def build_mesh_support(mjm: mujoco.MjModel, mesh_vert: wp.array, res: int, device=None) -> MeshSupport:
+@wp.kernel
+def _check_field(
+  ms: MeshSupport,
+  check_mesh: wp.array(dtype=int),
+  check_dir: wp.array(dtype=wp.vec3),
+  mismatches_out: wp.array(dtype=int),
+):
+  """Counts, per mesh, check directions where the 4-cell lookup misses the exact support."""
+  k = wp.tid()
+  mesh = check_mesh[k]
+  d = check_dir[k]
+  found = field_lookup(ms, mesh, d)
+  # hill-climbing on the hull graph is exact and cheaper than a scan; without a graph, scan
+  if ms.nbr_num[ms.hull_adr[mesh] + found] > 0:
+    truth = hill_climb(ms, mesh, found, d)
+  else:
+    truth = hull_scan(ms, mesh, d)
+  exact = wp.dot(hull_point(ms, mesh, truth), d)
+  got = wp.dot(hull_point(ms, mesh, found), d)
+  if got < exact - 1.0e-6 * wp.max(wp.abs(exact), 1.0e-12):
+    wp.atomic_add(mismatches_out, mesh, 1)
+
+
+def _check_directions(res: int, rng: np.random.Generator) -> np.ndarray:
+  """_NCHECK_SUB^2 directions inside every cell of a res grid, plus random ones."""
+  sub = (np.arange(_NCHECK_SUB) + 0.5) / _NCHECK_SUB
+  u, v = np.meshgrid((np.arange(res)[:, None] + sub).ravel(), (np.arange(res - 1)[:, None] + sub).ravel())
+  theta = 2 * np.pi * u.ravel() / res - np.pi
+  phi = np.pi * v.ravel() / (res - 1)
+  mids = np.stack([np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi)], axis=1)
+  rand = rng.normal(size=(_NCHECK_RANDOM, 3))
+  rand /= np.linalg.norm(rand, axis=1, keepdims=True)
+  return np.concatenate([mids, rand]).astype(np.float32)
+
+
+def _layout(ms: MeshSupport, field_res: np.ndarray, device) -> np.ndarray:
+  """Sets field_res/field_adr/field for these resolutions; returns the owning mesh per cell."""
+  ncells = field_res.astype(np.int64) ** 2
+  adr = np.concatenate([[0], np.cumsum(ncells)])
+  if adr[-1] >= 2**31:
+    raise ValueError(f"support fields need {adr[-1]} cells, more than 2^31; lower Options.support_res")
+  ms.field_res = wp.array(field_res.astype(np.int32), dtype=int, device=device)
+  ms.field_adr = wp.array(adr[:-1].astype(np.int32), dtype=int, device=device)
+  ms.field = wp.zeros(max(int(adr[-1]), 1), dtype=wp.uint16, device=device)
+  return np.repeat(np.arange(len(field_res), dtype=np.int32), ncells)
+
+
+def _build(ms: MeshSupport, field_res: np.ndarray, device):
+  cell_mesh = _layout(ms, field_res, device)
+  if len(cell_mesh):
+    wp.launch(_build_field, dim=len(cell_mesh), inputs=[ms, wp.array(cell_mesh, dtype=int, device=device)],
+              outputs=[ms.field], device=device)
+
+
+def choose_resolutions(ms: MeshSupport, hull_num: np.ndarray, cap: int, device) -> np.ndarray:
+  """Per mesh, one step above the smallest resolution whose lookup is exact on the check set."""
+  nmesh = len(hull_num)
+  chosen = np.where(hull_num > 0, cap, 0).astype(np.int32)
+  open_ = hull_num > 0
+  rng = np.random.default_rng(0)
+  levels = [r for r in _RESOLUTIONS if r < cap] + [cap]
+  for level, res in enumerate(levels[:-1]):
+    if res > _ADAPTIVE_MAX:
+      break
+    if not open_.any():
+      break
+    _build(ms, np.where(open_, res, 0).astype(np.int32), device)
+    dirs = _check_directions(res, rng)
+    meshes = np.nonzero(open_)[0].astype(np.int32)
+    check_mesh = np.repeat(meshes, len(dirs))
+    check_dir = np.tile(dirs, (len(meshes), 1))
+    mismatches = wp.zeros(nmesh, dtype=int, device=device)
+    wp.launch(_check_field, dim=len(check_mesh),
+              inputs=[ms, wp.array(check_mesh, dtype=int, device=device), wp.array(check_dir, dtype=wp.vec3, device=device)],
+              outputs=[mismatches], device=device)
+    exact = open_ & (mismatches.numpy() == 0)
+    chosen[exact] = levels[level + 1]  # one step of margin: the check set is finite
+    open_ &= ~exact
+  return chosen
+
+
+def build_mesh_support(mjm: mujoco.MjModel, mesh_vert: wp.array, res: int, device=None, adaptive: bool = True) -> MeshSupport:
   """Builds MeshSupport (hulls, neighbour lists and one field per mesh) on the device.
 
-  ``mesh_vert`` is MuJoCo Warp's device copy of the mesh vertices (shared, not copied).
+  Args:
+    mjm: the host model (MuJoCo's hulls are read from it).
+    mesh_vert: MuJoCo Warp's device copy of the mesh vertices (shared, not copied).
+    res: the resolution cap (``Options.support_res``).
+    device: Warp device.
+    adaptive: pick the smallest exact resolution per mesh; False uses ``res`` for all.
+
+  Raises:
+    ValueError: a hull too large for 16-bit cells, naming the mesh.
   """
   hd = hull_data(mjm)
-  nmesh = mjm.nmesh
+  big = np.nonzero(hd.hull_num > _MAX_HULL)[0]
+  if len(big):
+    name = mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_MESH, int(big[0])) or f"mesh {big[0]}"
+    raise ValueError(f"mesh '{name}': its convex hull has {hd.hull_num[big[0]]} vertices, more than {_MAX_HULL}"
+                     " (set maxhullvert on the mesh)")
+  return build_from_hulls(hd, mesh_vert, np.asarray(mjm.mesh_vertadr, dtype=np.int32), res, device, adaptive)
+
+
+def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int, device=None, adaptive: bool = True
+                     ) -> MeshSupport:
+  """Builds MeshSupport from flattened hulls (``build_mesh_support`` without MuJoCo)."""
   ms = MeshSupport()
 
   def arr(x, dtype=int):
     return wp.array(x, dtype=dtype, device=device)
 
-  ms.vert = mesh_vert
-  ms.vertadr = arr(np.asarray(mjm.mesh_vertadr, dtype=np.int32) if nmesh else np.zeros(0, np.int32))
+  ms.vert = vert
+  ms.vertadr = arr(vertadr)
   ms.hull_adr = arr(hd.hull_adr)
   ms.hull_num = arr(hd.hull_num)
   ms.hull_center = arr(hd.hull_center, wp.vec3)
@@ -128,20 +230,12 @@ def build_mesh_support(mjm: mujoco.MjModel, mesh_vert: wp.array, res: int, devic
   ms.nbr_adr = arr(hd.nbr_adr)
   ms.nbr_num = arr(hd.nbr_num)
   ms.nbr = arr(hd.nbr)
-  field_res = np.full(nmesh, res, dtype=np.int32)
-  field_res[hd.hull_num == 0] = 0
-  field_adr = np.concatenate([[0], np.cumsum(field_res.astype(np.int64) ** 2)]).astype(np.int64)
-  ncell = int(field_adr[-1])
-  ms.field_res = arr(field_res)
-  ms.field_adr = arr(field_adr[:-1].astype(np.int32))
-  ms.field = wp.zeros(max(ncell, 1), dtype=int, device=device)
-  if ncell:
-    cell_mesh = np.repeat(np.arange(nmesh, dtype=np.int32), field_res.astype(np.int64) ** 2)
-    wp.launch(_build_field, dim=ncell, inputs=[ms, arr(cell_mesh)], outputs=[ms.field], device=device)
+  field_res = choose_resolutions(ms, hd.hull_num, res, device) if adaptive else np.where(hd.hull_num > 0, res, 0)
+  _build(ms, np.asarray(field_res, dtype=np.int32), device)
   return ms
 
 
-def field_bytes(ms: MeshSupport, meshid: int) -> int:
-  """Bytes the support field of one mesh occupies (cells only)."""
-  res = int(ms.field_res.numpy()[meshid])
+def field_bytes(ms: MeshSupport) -> np.ndarray:
+  """Bytes of support field per mesh (cells only; 2 bytes a cell)."""
+  res = ms.field_res.numpy().astype(np.int64)
   return res * res * wp.types.type_size_in_bytes(ms.field.dtype)

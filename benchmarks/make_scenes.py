@@ -1,0 +1,73 @@
+"""Writes the benchmark scenes into benchmarks/scenes/ (deterministic: fixed seeds).
+
+  python benchmarks/make_scenes.py
+
+pile_<n>_<p>.xml : n random convex meshes (p points each, on random ellipsoids) dropped in a
+                   loose lattice onto a plane; they settle into a pile.
+primitives_<n>.xml: n mixed primitives (sphere, capsule, box, cylinder, ellipsoid) likewise.
+"""
+
+import os
+
+import numpy as np
+
+HERE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
+HEADER = '<mujoco model="{name}">\n  <option timestep="0.002"/>\n'
+FLOOR = '    <geom name="floor" type="plane" size="0 0 0.05"/>\n    <light pos="0 0 3" dir="0 0 -1"/>\n'
+
+
+def _lattice(n: int, spacing: float, z0: float):
+  side = int(np.ceil(np.sqrt(n / 2)))
+  for k in range(n):
+    layer, r = divmod(k, side * side)
+    i, j = divmod(r, side)
+    yield (i - side / 2) * spacing, (j - side / 2) * spacing, z0 + layer * spacing
+
+
+def ellipsoid_points(rng, npoints: int) -> np.ndarray:
+  axes = rng.uniform(0.02, 0.05, size=3)
+  p = rng.normal(size=(npoints, 3))
+  p = p / np.linalg.norm(p, axis=1, keepdims=True) * axes
+  q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+  return p @ q.T
+
+
+def pile(n: int, npoints: int, seed: int = 0) -> str:
+  rng = np.random.default_rng(seed)
+  name = f"pile_{n}_{npoints}"
+  assets = "".join(
+    f'    <mesh name="m{k}" vertex="{" ".join(f"{x:.5f}" for x in ellipsoid_points(rng, npoints).ravel())}"/>\n'
+    for k in range(n)
+  )
+  bodies = "".join(
+    f'    <body name="b{k}" pos="{x:.3f} {y:.3f} {z:.3f}"><freejoint/><geom name="g{k}" type="mesh" mesh="m{k}"/></body>\n'
+    for k, (x, y, z) in enumerate(_lattice(n, 0.11, 0.06))
+  )
+  return HEADER.format(name=name) + f"  <asset>\n{assets}  </asset>\n  <worldbody>\n{FLOOR}{bodies}  </worldbody>\n</mujoco>\n"
+
+
+def primitives(n: int, seed: int = 0) -> str:
+  rng = np.random.default_rng(seed)
+  kinds = ["sphere", "capsule", "box", "cylinder", "ellipsoid"]
+  bodies = []
+  for k, (x, y, z) in enumerate(_lattice(n, 0.11, 0.06)):
+    kind = kinds[k % len(kinds)]
+    s = rng.uniform(0.02, 0.04, size=3)
+    size = {"sphere": f"{s[0]:.3f}", "capsule": f"{s[0]:.3f} {s[1]:.3f}", "box": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}",
+            "cylinder": f"{s[0]:.3f} {s[1]:.3f}", "ellipsoid": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"}[kind]
+    bodies.append(f'    <body name="b{k}" pos="{x:.3f} {y:.3f} {z:.3f}"><freejoint/>'
+                  f'<geom name="g{k}" type="{kind}" size="{size}"/></body>\n')
+  return HEADER.format(name=f"primitives_{n}") + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
+
+
+def main():
+  os.makedirs(HERE, exist_ok=True)
+  scenes = {"pile_32_128.xml": pile(32, 128), "primitives_32.xml": primitives(32)}
+  for fname, xml in scenes.items():
+    with open(os.path.join(HERE, fname), "w") as f:
+      f.write(xml)
+    print("wrote", os.path.join(HERE, fname))
+
+
+if __name__ == "__main__":
+  main()

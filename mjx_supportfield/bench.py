@@ -1,0 +1,162 @@
+"""Speed of the plugin vs stock MuJoCo Warp: collision stage and whole step, graph-captured."""
+
+import dataclasses
+import json
+import platform
+import sys
+import time
+from typing import Optional
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import warp as wp
+
+from mjx_supportfield.install import install
+from mjx_supportfield.options import Options
+
+
+@dataclasses.dataclass
+class Row:
+  """One timing: scene, nworld, impl ("plugin" | "stock"), stage ("collision" | "step")."""
+
+  scene: str
+  nworld: int
+  impl: str
+  stage: str
+  ms: float
+  contacts_per_world: float
+
+
+class Progress:
+  """A one-line progress indicator on stderr (no dependency; compile steps take minutes)."""
+
+  def __init__(self, total: int):
+    self.total, self.done, self.t0 = total, 0, time.perf_counter()
+
+  def step(self, what: str):
+    self.done += 1
+    width = 30
+    filled = int(width * self.done / self.total)
+    elapsed = time.perf_counter() - self.t0
+    sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {elapsed:6.0f}s {what:50.50s}")
+    sys.stderr.flush()
+    if self.done == self.total:
+      sys.stderr.write("\n")
+
+
+def settled_state(mjm: mujoco.MjModel, settle_steps: int) -> mujoco.MjData:
+  """MuJoCo C state after ``settle_steps`` steps from the initial pose (objects in contact)."""
+  mjd = mujoco.MjData(mjm)
+  if mjm.nkey:
+    mujoco.mj_resetDataKeyframe(mjm, mjd, 0)
+  for _ in range(settle_steps):
+    mujoco.mj_step(mjm, mjd)
+  mujoco.mj_forward(mjm, mjd)
+  return mjd
+
+
+def _time_graph(fn, launches: int) -> float:
+  """Milliseconds per launch of ``fn`` captured in a CUDA graph (or called, on the CPU)."""
+  device = wp.get_device()
+  if device.is_cuda:
+    with wp.ScopedCapture() as capture:
+      fn()
+    wp.capture_launch(capture.graph)  # warm
+    wp.synchronize()
+    t = time.perf_counter()
+    for _ in range(launches):
+      wp.capture_launch(capture.graph)
+    wp.synchronize()
+  else:
+    fn()
+    t = time.perf_counter()
+    for _ in range(launches):
+      fn()
+    wp.synchronize()
+  return (time.perf_counter() - t) / launches * 1e3
+
+
+def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int, nconmax: Optional[int],
+                options: Optional[Options], progress: Optional[Progress] = None) -> list[Row]:
+  """Times both implementations on one scene for each nworld."""
+  mjm = mujoco.MjModel.from_xml_path(path)
+  mjd = settled_state(mjm, settle_steps)
+  scene = path.rsplit("/", 1)[-1].removesuffix(".xml")
+  if scene == "scene":
+    scene = path.rsplit("/", 2)[-2]
+  # room for what MuJoCo C finds at the settled state, with headroom for both implementations
+  ncon = nconmax or int(1.5 * mjd.ncon) + 16
+  njmax = 6 * ncon + mjd.nefc
+  rows = []
+  for nworld in nworlds:
+    for impl in ("stock", "plugin"):
+      m = mjw.put_model(mjm)
+      if impl == "plugin":
+        install(mjm, m, options or Options())
+      d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=ncon, njmax=njmax)
+      mjw.forward(m, d)  # compiles; creates the plugin's per-Data state outside the graph
+      mjw.step(m, d)
+      wp.synchronize()
+      ms_col = _time_graph(lambda: mjw.collision(m, d), launches)
+      contacts = min(int(d.nacon.numpy()[0]), d.naconmax) / nworld
+      rows.append(Row(scene, nworld, impl, "collision", ms_col, contacts))
+      ms_step = _time_graph(lambda: mjw.step(m, d), launches)
+      rows.append(Row(scene, nworld, impl, "step", ms_step, contacts))
+      if progress:
+        progress.step(f"{scene} nworld={nworld} {impl}")
+  return rows
+
+
+def format_table(rows: list[Row]) -> str:
+  """ms, million world-steps per second and stock/plugin ratio per scene, nworld and stage."""
+  out = [f"{'scene':24s} {'nworld':>6s} {'stage':9s} {'stock ms':>9s} {'plugin ms':>9s} {'speed-up':>8s} "
+         f"{'plugin Mws/s':>12s} {'con/world stock':>15s} {'plugin':>7s}"]
+  keyed = {(r.scene, r.nworld, r.stage, r.impl): r for r in rows}
+  for (scene, nworld, stage, impl), r in keyed.items():
+    if impl != "plugin" or (scene, nworld, stage, "stock") not in keyed:
+      continue
+    s = keyed[(scene, nworld, stage, "stock")]
+    out.append(f"{scene:24s} {nworld:6d} {stage:9s} {s.ms:9.3f} {r.ms:9.3f} {s.ms / r.ms:7.2f}x "
+               f"{nworld / r.ms / 1e3:12.2f} {s.contacts_per_world:15.1f} {r.contacts_per_world:7.1f}")
+  return "\n".join(out)
+
+
+def device_name() -> str:
+  """The GPU's name (or the CPU's) for the results file."""
+  device = wp.get_device()
+  return device.name if device.is_cuda else (platform.processor() or "cpu")
+
+
+def write_json(rows: list[Row], path: str) -> None:
+  """Writes {"gpu", "versions", "rows"} as specified by the benchmark issue."""
+  import importlib.metadata as md
+
+  versions = {p: md.version(p) for p in ("mujoco", "mujoco-warp", "warp-lang")}
+  with open(path, "w") as f:
+    json.dump({"gpu": device_name(), "versions": versions, "rows": [dataclasses.asdict(r) for r in rows]}, f, indent=1)
+
+
+def plot(rows: list[dict], path: str) -> None:
+  """PNG of time vs nworld, both implementations, one panel per scene and stage (needs matplotlib)."""
+  import matplotlib
+
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  scenes = sorted({r["scene"] for r in rows})
+  fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3.2 * len(scenes)), squeeze=False)
+  for i, scene in enumerate(scenes):
+    for j, stage in enumerate(("collision", "step")):
+      ax = axes[i][j]
+      for impl, style in (("stock", "o--"), ("plugin", "s-")):
+        pts = sorted((r["nworld"], r["ms"]) for r in rows if r["scene"] == scene and r["stage"] == stage and r["impl"] == impl)
+        if pts:
+          ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=impl)
+      ax.set_xscale("log", base=2)
+      ax.set_title(f"{scene}: {stage}")
+      ax.set_xlabel("nworld")
+      ax.set_ylabel("ms")
+      ax.legend()
+  fig.tight_layout()
+  fig.savefig(path, dpi=100)

@@ -1,0 +1,135 @@
+"""Command line: ``mjx-supportfield compare MODEL.xml`` (and ``python -m mjx_supportfield``)."""
+
+import argparse
+import os
+import sys
+
+
+def _compare(args) -> int:
+  import warp as wp
+
+  wp.config.log_level = wp.LOG_WARNING  # no per-module compile lines
+  from mjx_supportfield.compare import compare
+  from mjx_supportfield.compare import format_report
+  from mjx_supportfield.compare import write_json
+  from mjx_supportfield.options import Options
+
+  options = Options(support_mode=args.support_mode, support_res=args.support_res)
+  with wp.ScopedDevice(args.device):
+    report = compare(args.model, steps=args.steps, samples=args.samples, nworld=args.nworld, min_depth=args.min_depth,
+                     options=options)
+  print(format_report(report))
+  if args.json:
+    write_json(report, args.json)
+    print(f"wrote {args.json}")
+  summary = report["impls"]["plugin"]["summary"]
+  if args.check and (summary["missed_deep"] > 0 or summary["median_normal_angle_deg"] > 1.0):
+    print("check failed: deep pairs missed or median normal angle > 1 deg", file=sys.stderr)
+    return 1
+  return 0
+
+
+def _bench(args) -> int:
+  import json
+
+  import warp as wp
+
+  wp.config.log_level = wp.LOG_WARNING
+  from mjx_supportfield import bench
+  from mjx_supportfield.options import Options
+
+  nworlds = [int(x) for x in args.nworld.split(",")]
+  rows = []
+  with wp.ScopedDevice(args.device):
+    progress = bench.Progress(len(args.model) * len(nworlds) * 2)
+    for path in args.model:
+      rows += bench.bench_scene(path, nworlds, args.steps, args.settle, args.nconmax, Options(), progress)
+    print(f"device: {bench.device_name()}")
+    print(bench.format_table(rows))
+    if args.json:
+      bench.write_json(rows, args.json)
+      print(f"wrote {args.json}")
+  if args.plot:
+    try:
+      bench.plot([r.__dict__ for r in rows], args.plot)
+      print(f"wrote {args.plot}")
+    except ImportError:
+      print("--plot needs matplotlib (pip install matplotlib); use 'mjx-supportfield plot RESULTS.json OUT.png' "
+            "where it is installed", file=sys.stderr)
+  return 0
+
+
+def _plot(args) -> int:
+  import json
+
+  from mjx_supportfield import bench
+
+  with open(args.results) as f:
+    bench.plot(json.load(f)["rows"], args.out)
+  print(f"wrote {args.out}")
+  return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+  p = argparse.ArgumentParser(prog="mjx-supportfield", description="Support-field collision plugin for MuJoCo Warp")
+  sub = p.add_subparsers(dest="command", required=True)
+  c = sub.add_parser("compare", help="compare contacts with MuJoCo C and stock MuJoCo Warp")
+  c.add_argument("model", help="MJCF file")
+  c.add_argument("--steps", type=int, default=200, help="MuJoCo C steps to roll out (default 200)")
+  c.add_argument("--samples", type=int, default=5, help="states sampled along the rollout (default 5)")
+  c.add_argument("--nworld", type=int, default=None, help="worlds (default: one per sampled state)")
+  c.add_argument("--min-depth", type=float, default=5e-4, help="depth [m] from which a missed pair counts (5e-4)")
+  c.add_argument("--support-mode", default="refined", help="field | refined | exact")
+  c.add_argument("--support-res", type=int, default=180)
+  c.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
+  c.add_argument("--json", default=None, help="write the full report here")
+  c.add_argument("--check", action="store_true", help="exit 1 if a deep pair is missed or the median angle > 1 deg")
+  c.set_defaults(func=_compare)
+
+  b = sub.add_parser("bench", help="time the plugin against stock MuJoCo Warp (collision stage and step)")
+  b.add_argument("model", nargs="+", help="MJCF file(s)")
+  b.add_argument("--nworld", default="1024,4096,8192", help="comma-separated world counts")
+  b.add_argument("--steps", type=int, default=100, help="timed graph launches per measurement (>= 100)")
+  b.add_argument("--settle", type=int, default=200, help="MuJoCo C steps before timing, to start in contact")
+  b.add_argument("--nconmax", type=int, default=None, help="contacts per world to allocate (MuJoCo Warp default)")
+  b.add_argument("--device", default=None)
+  b.add_argument("--json", default=None, help="write rows as JSON")
+  b.add_argument("--plot", default=None, help="write a PNG of time vs nworld (needs matplotlib)")
+  b.set_defaults(func=_bench)
+
+  pl = sub.add_parser("plot", help="plot a bench JSON file")
+  pl.add_argument("results")
+  pl.add_argument("out")
+  pl.set_defaults(func=_plot)
+  return p
+
+
+def main(argv=None) -> int:
+  """Entry point of the ``mjx-supportfield`` console script."""
+  args = _parser().parse_args(argv)
+  models = args.model if isinstance(getattr(args, "model", None), list) else [getattr(args, "model", None)]
+  for path in models:
+    if path is not None and not os.path.isfile(path):
+      print(f"mjx-supportfield: error: model file not found: {path}", file=sys.stderr)
+      return 2
+  if args.command == "compare":
+    for name in ("steps", "samples", "nworld"):
+      value = getattr(args, name)
+      if value is not None and value < (0 if name == "steps" else 1):
+        print(f"mjx-supportfield: error: --{name} must be positive, got {value}", file=sys.stderr)
+        return 2
+  try:
+    return args.func(args)
+  except ValueError as e:  # invalid options, bad model, mismatched models
+    print(f"mjx-supportfield: error: {e}", file=sys.stderr)
+    return 2
+  except Exception as e:  # noqa: BLE001 -- MuJoCo's XML errors are plain Exceptions
+    if type(e).__name__ in ("FatalError", "ValueError") or "XML" in str(e) or "Error" in type(e).__name__:
+      print(f"mjx-supportfield: error: {type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else e}",
+            file=sys.stderr)
+      return 2
+    raise
+
+
+if __name__ == "__main__":
+  sys.exit(main())

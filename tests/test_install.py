@@ -1,0 +1,203 @@
+"""install / uninstall / dispatch: the plugin replaces MuJoCo Warp's collision stage of one model."""
+
+import mujoco_warp as mjw
+import numpy as np
+import pytest
+import warp as wp
+
+import mjx_supportfield as sf
+from conftest import HAS_CUDA
+from conftest import contacts
+from conftest import load
+from conftest import load_mjmodel
+
+NWORLD = 2
+
+
+def contact_records(d):
+  """All active contacts as a sorted list of exact (world, geom1, geom2, dist, pos, frame) tuples."""
+  recs = []
+  for w in range(d.nworld):
+    c = contacts(d, w)
+    for i in range(c.n):
+      recs.append((w, *(int(x) for x in c.geom[i]), float(c.dist[i]), *c.pos[i].tolist(), *c.frame[i].ravel().tolist()))
+  return sorted(recs)
+
+
+@pytest.fixture(scope="module")
+def pile_stock():
+  """convex_pile, never installed: stock MuJoCo Warp contacts at qpos0 (mesh-mesh pairs overlap)."""
+  sim = load("convex_pile", nworld=NWORLD)
+  mjw.collision(sim.m, sim.d)
+  return sim, contact_records(sim.d), int(sim.d.nacon.numpy()[0])
+
+
+def test_install_uninstall_restores_stock(pile_stock):
+  ref_sim, ref, ref_n = pile_stock
+  sim = load("convex_pile", nworld=NWORLD)
+  m, d = sim.m, sim.d
+  assert sf.get_collider(m) is None
+  collider = sf.install(sim.mjm, m)
+  assert sf.get_collider(m) is collider
+
+  mjw.collision(m, d)  # the patched entry point dispatches to the plugin
+  plugin = contact_records(d)
+  assert sf.get_collider(m).stats(d)["pairs"] > 0
+  # the plugin gives one contact per mesh-mesh pair, stock several: the two must differ
+  assert plugin != ref
+  assert int(d.nacon.numpy()[0]) < ref_n
+
+  # a model without the plugin keeps stock collision while another model has it
+  d_other = mjw.put_data(ref_sim.mjm, ref_sim.mjd, nworld=NWORLD)
+  mjw.kinematics(ref_sim.m, d_other)
+  mjw.collision(ref_sim.m, d_other)
+  assert contact_records(d_other) == ref
+
+  sf.uninstall(m)
+  assert sf.get_collider(m) is None
+  mjw.collision(m, d)
+  assert contact_records(d) == ref
+  d.nacon.zero_()
+  mjw.fwd_position(m, d)
+  assert contact_records(d) == ref
+
+
+def test_install_twice_raises():
+  mjm = load_mjmodel("convex_pile")
+  m = mjw.put_model(mjm)
+  sf.install(mjm, m)
+  with pytest.raises(ValueError, match="already installed"):
+    sf.install(mjm, m)
+  sf.uninstall(m)
+  sf.install(mjm, m)  # fine again after uninstall
+  sf.uninstall(m)
+
+
+def test_uninstall_without_plugin_raises():
+  mjm = load_mjmodel("convex_pile")
+  m = mjw.put_model(mjm)
+  with pytest.raises(ValueError, match="not installed"):
+    sf.uninstall(m)
+  d = mjw.make_data(mjm)
+  with pytest.raises(ValueError, match="not installed"):
+    sf.collision(m, d)
+  sf.install(mjm, m)
+  sf.uninstall(m)
+  with pytest.raises(ValueError, match="not installed"):
+    sf.uninstall(m)
+
+
+def test_install_argument_checks():
+  mjm = load_mjmodel("convex_pile")
+  m = mjw.put_model(mjm)
+  with pytest.raises(TypeError):
+    sf.install("convex_pile", m)
+  with pytest.raises(TypeError):
+    sf.install(mjm, mjm)
+  with pytest.raises(TypeError):
+    sf.install(mjm, m, 180)
+  other = load_mjmodel("primitives_plane")
+  with pytest.raises(ValueError):
+    sf.install(other, m)
+  with pytest.raises(ValueError, match="bogus"):
+    sf.install(mjm, m, {"bogus": 1})
+  assert sf.get_collider(m) is None  # failed installs leave the model stock
+  collider = sf.install(mjm, m, {"support_res": 64, "support_mode": "exact"})
+  assert collider.options == sf.Options(support_res=64, support_mode="exact")
+  sf.uninstall(m)
+
+
+def test_data_from_other_model_raises():
+  sim = load("convex_pile")
+  sf.install(sim.mjm, sim.m)
+  other = load("primitives_plane")  # 14 geoms against 7
+  with pytest.raises(ValueError):
+    sf.collision(sim.m, other.d)
+  sf.uninstall(sim.m)
+
+
+@pytest.fixture(scope="module")
+def pile_installed():
+  sim = load("convex_pile", nworld=NWORLD)
+  sf.install(sim.mjm, sim.m)
+  return sim
+
+
+def test_step_runs_plugin(pile_installed, pile_stock):
+  _, ref, ref_n = pile_stock
+  sim = pile_installed
+  m = sim.m
+  # what the plugin alone gives at qpos0
+  d0 = mjw.put_data(sim.mjm, sim.mjd, nworld=NWORLD)
+  mjw.kinematics(m, d0)
+  sf.collision(m, d0)
+  expected = contact_records(d0)
+  assert expected != ref
+
+  d = mjw.put_data(sim.mjm, sim.mjd, nworld=NWORLD)
+  assert sf.get_collider(m).stats(d)["pairs"] == 0
+  mjw.step(m, d)
+  # step's contacts are those of the state it started from
+  assert contact_records(d) == expected
+  assert int(d.nacon.numpy()[0]) != ref_n
+  assert sf.get_collider(m).stats(d)["pairs"] > 0
+  for _ in range(4):
+    mjw.step(m, d)
+  assert np.all(np.isfinite(d.qpos.numpy()))
+
+
+def test_two_data_alternately(pile_installed):
+  """One installed model, Data of nworld 1 and 3 used in turn: each keeps its own state."""
+  sim = pile_installed
+  m = sim.m
+  d1 = mjw.put_data(sim.mjm, sim.mjd, nworld=1)
+  d3 = mjw.put_data(sim.mjm, sim.mjd, nworld=3)
+  for _ in range(3):
+    mjw.step(m, d1)
+    mjw.step(m, d3)
+  c1 = contacts(d1, 0)
+  assert c1.n > 0
+  for w in range(3):
+    cw = contacts(d3, w)
+    assert cw.n == c1.n
+    np.testing.assert_allclose(np.sort(cw.dist), np.sort(c1.dist), atol=1e-6)
+    np.testing.assert_allclose(d3.qpos.numpy()[w], d1.qpos.numpy()[0], atol=1e-5)
+  s1 = sf.get_collider(m).stats(d1)
+  s3 = sf.get_collider(m).stats(d3)
+  assert len(s1["pairs_per_world"]) == 1 and len(s3["pairs_per_world"]) == 3
+  assert s3["pairs_per_world"] == s1["pairs_per_world"] * 3
+  assert s3["pairs"] == 3 * s1["pairs"]
+  # collision only, alternating again, against fresh Data
+  mjw.kinematics(m, d1)
+  mjw.kinematics(m, d3)
+  sf.collision(m, d1)
+  sf.collision(m, d3)
+  sf.collision(m, d1)
+  fresh = mjw.put_data(sim.mjm, sim.mjd, nworld=1)
+  fresh.qpos.assign(d1.qpos.numpy())
+  mjw.kinematics(m, fresh)
+  sf.collision(m, fresh)
+  assert contact_records(fresh) == contact_records(d1)
+
+
+@pytest.mark.skipif(not HAS_CUDA, reason="CUDA graph capture needs a CUDA device")
+def test_graph_capture_matches_uncaptured():
+  device = wp.get_cuda_device()
+  with wp.ScopedDevice(device):
+    sim = load("convex_pile", nworld=4)
+    m = sim.m
+    sf.install(sim.mjm, m)
+    d_ref = mjw.put_data(sim.mjm, sim.mjd, nworld=4)
+    d_cap = mjw.put_data(sim.mjm, sim.mjd, nworld=4)
+    mjw.step(m, d_ref)  # load every kernel before capturing
+    mjw.step(m, d_cap)
+    with wp.ScopedCapture() as capture:
+      mjw.step(m, d_cap)
+    for _ in range(5):
+      wp.capture_launch(capture.graph)
+      mjw.step(m, d_ref)
+    wp.synchronize()
+    np.testing.assert_allclose(d_cap.qpos.numpy(), d_ref.qpos.numpy(), atol=1e-5)
+    assert int(d_cap.nacon.numpy()[0]) == int(d_ref.nacon.numpy()[0])
+    assert sf.get_collider(m).stats(d_cap)["pairs"] == sf.get_collider(m).stats(d_ref)["pairs"]
+    sf.uninstall(m)

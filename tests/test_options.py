@@ -1,0 +1,92 @@
+"""Options: defaults, validation (ValueError naming the field) and from_dict."""
+
+import dataclasses
+import math
+
+import pytest
+
+from mjx_supportfield import Options
+
+
+def test_defaults():
+  o = Options()
+  assert o.support_res == 180
+  assert o.max_collision_pairs == 4096
+  assert o.support_mode == "refined"
+  assert o.sap_axis in (0, 1, 2)
+  assert o.mpr_iterations >= 1
+  assert 0 < o.mpr_tolerance <= 1e-2
+
+
+def test_frozen():
+  o = Options()
+  with pytest.raises(dataclasses.FrozenInstanceError):
+    o.support_res = 90
+
+
+@pytest.mark.parametrize("mode", ["field", "refined", "exact"])
+def test_valid_modes(mode):
+  assert Options(support_mode=mode).support_mode == mode
+
+
+INVALID = [
+  ("support_res", 0),
+  ("support_res", 3),
+  ("support_res", -180),
+  ("support_res", 5000),
+  ("support_res", 180.0),
+  ("support_res", "180"),
+  ("support_res", True),
+  ("support_res", None),
+  ("support_mode", "fast"),
+  ("support_mode", "Refined"),
+  ("support_mode", ""),
+  ("support_mode", None),
+  ("support_mode", 1),
+  ("max_collision_pairs", 0),
+  ("max_collision_pairs", -1),
+  ("max_collision_pairs", 1.5),
+  ("max_collision_pairs", "4096"),
+  ("max_collision_pairs", False),
+  ("mpr_iterations", 0),
+  ("mpr_iterations", 2.0),
+  ("mpr_tolerance", 0.0),
+  ("mpr_tolerance", -1e-6),
+  ("mpr_tolerance", math.nan),
+  ("mpr_tolerance", math.inf),
+  ("mpr_tolerance", 1.0),
+  ("mpr_tolerance", "1e-6"),
+  ("sap_axis", 3),
+  ("sap_axis", -1),
+  ("sap_axis", 0.0),
+]
+
+
+@pytest.mark.parametrize("field,value", INVALID, ids=[f"{f}={v!r}" for f, v in INVALID])
+def test_invalid_value_names_field(field, value):
+  with pytest.raises(ValueError, match=field):
+    Options(**{field: value})
+  with pytest.raises(ValueError, match=field):
+    Options.from_dict({field: value})
+
+
+def test_boundaries_accepted():
+  Options(support_res=4, max_collision_pairs=1, mpr_iterations=1, sap_axis=2)
+  Options(support_res=4096)
+  Options(mpr_tolerance=1e-12)
+  Options(mpr_tolerance=1e-2)
+
+
+def test_from_dict():
+  o = Options.from_dict({"support_res": 64, "support_mode": "exact", "max_collision_pairs": 17})
+  assert o == Options(support_res=64, support_mode="exact", max_collision_pairs=17)
+  assert Options.from_dict({}) == Options()
+
+
+@pytest.mark.parametrize("keys", [["bogus"], ["support_resolution"], ["zzz", "aaa"]])
+def test_from_dict_unknown_field(keys):
+  values = {"support_res": 64, **{k: 1 for k in keys}}
+  with pytest.raises(ValueError) as info:
+    Options.from_dict(values)
+  for k in keys:
+    assert k in str(info.value)

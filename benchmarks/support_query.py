@@ -8,7 +8,8 @@ Query throughput of the four ways to answer a convex-mesh support query, for hul
   refined  field vertex, then hill-climb on the hull graph (exact; the default)
   exact    exhaustive scan of the hull vertices
   climb    MuJoCo Warp's way: hill-climb from the previous query's vertex
-Also: fraction of queries that are exact, bytes per mesh vs the seed's 16 B x res^2, and
+Times are also given net of a run that only generates the directions ("net"): the cost
+of the query itself. Also: fraction of queries that are exact, bytes per mesh vs the seed's 16 B x res^2, and
 build time for 1, 100 and 1000 meshes of 64, 512 and 4096 hull vertices.
 """
 
@@ -71,13 +72,16 @@ def _direction(seed: int, i: int, k: int, coherent: int) -> wp.vec3:
 
 @wp.kernel
 def query_kernel(ms: MeshSupport, nmesh: int, mode: int, coherent: int, seed: int, out: wp.array(dtype=float)):
-  """mode 0 field, 1 refined, 2 exact, 3 hill-climb from the previous vertex."""
+  """mode 0 field, 1 refined, 2 exact, 3 hill-climb from the previous vertex, -1 no query."""
   i = wp.tid()
   mesh = i % nmesh
   acc = float(0.0)
   prev = int(0)
   for k in range(QUERIES_PER_THREAD):
     d = _direction(seed, i, k, coherent)
+    if mode == -1:
+      acc += d[0]  # the loop and the direction alone: subtracted from the others
+      continue
     if mode == 3:
       prev = sp.hill_climb(ms, mesh, prev, d)
       v = prev
@@ -150,17 +154,20 @@ def main():
     ms = replicated_support(mjm, args.meshes, args.res, device)
     res = int(ms.field_res.numpy()[0])
     for coherent in (0, 1):
+      overhead = time_queries(ms, args.meshes, -1, coherent, args.threads, device)
       for name, mode in MODES.items():
         secs = time_queries(ms, args.meshes, mode, coherent, args.threads, device)
         nq = args.threads * QUERIES_PER_THREAD
+        net = max(secs - overhead, 1e-12)
         row = {"hull_vertices": int(ms.hull_num.numpy()[0]), "directions": "coherent" if coherent else "random",
                "mode": name, "mqueries_per_s": nq / secs / 1e6, "ns_per_query": secs / nq * 1e9,
+               "net_ns_per_query": net / nq * 1e9, "overhead_ns_per_query": overhead / nq * 1e9,
                "exact_fraction": exact_fraction(ms, args.meshes, mode, coherent, min(args.threads, 1 << 16), device),
                "field_res": res, "field_bytes": int(sf.field_bytes(ms)[0]),
                "seed_bytes": SEED_BYTES_PER_CELL * args.res * args.res}
         rows.append(row)
         print(f"hull {row['hull_vertices']:5d} {row['directions']:8s} {name:8s} {row['mqueries_per_s']:10.1f} Mq/s "
-              f"{row['ns_per_query']:8.3f} ns/q exact {row['exact_fraction']:.6f}  res {res} "
+              f"{row['ns_per_query']:8.3f} ns/q (net of direction generation {row['net_ns_per_query']:8.3f}) exact {row['exact_fraction']:.6f}  res {res} "
               f"{row['field_bytes']} B/mesh (seed {row['seed_bytes']} B)", flush=True)
   for n in [int(x) for x in args.build_sizes.split(",")]:
     mjm = sphere_hull(n, seed=1)

@@ -46,10 +46,8 @@ class Progress:
 
 
 def settled_state(mjm: mujoco.MjModel, settle_steps: int) -> mujoco.MjData:
-  """MuJoCo C state after ``settle_steps`` steps from the initial pose (objects in contact)."""
+  """MuJoCo C state after ``settle_steps`` steps from qpos0 (as ``compare`` samples states)."""
   mjd = mujoco.MjData(mjm)
-  if mjm.nkey:
-    mujoco.mj_resetDataKeyframe(mjm, mjd, 0)
   for _ in range(settle_steps):
     mujoco.mj_step(mjm, mjd)
   mujoco.mj_forward(mjm, mjd)

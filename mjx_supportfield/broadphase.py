@@ -1,7 +1,8 @@
 """Sweep-and-prune broad phase with a warm-started per-world endpoint order.
 
 Each world keeps the order of its geoms along one axis from the previous step; insertion
-sort restores it in near-linear time when little moved. The sweep walks the sorted boxes,
+sort (one thread per world) restores it in near-linear time when little moved. The sweep
+runs one thread per (world, sorted box): it walks the boxes that start inside its own,
 tests the other two axes, then applies MuJoCo's pair filters (``m.nxn_pairid``: contype /
 conaffinity, parent-child, weld, exclude), sleeping bodies and MuJoCo Warp's own bounding
 filters (plane, sphere, AABB, OBB per ``m.opt.broadphase_filter``).
@@ -159,9 +160,36 @@ _MODEL_INPUTS = (
 )
 
 
+@wp.kernel
+def sort_endpoints(
+  ngeom: int,
+  axis: int,
+  aabb_lo: wp.array2d(dtype=wp.vec3),
+  sap_init: wp.array(dtype=int),
+  order: wp.array2d(dtype=int),
+):
+  """Per world: insertion sort of the geoms by lower bound, from last step's order."""
+  worldid = wp.tid()
+  if sap_init[worldid] == 0:
+    for k in range(ngeom):
+      order[worldid, k] = k
+    sap_init[worldid] = 1
+  for k in range(1, ngeom):
+    g = order[worldid, k]
+    key = aabb_lo[worldid, g][axis]
+    j = k
+    while j > 0 and aabb_lo[worldid, order[worldid, j - 1]][axis] > key:
+      order[worldid, j] = order[worldid, j - 1]
+      j -= 1
+    order[worldid, j] = g
+
+
 @functools.lru_cache(maxsize=None)
 def sweep_kernel(static_key: tuple, axis: int):
-  """Per-world insertion sort + sweep; static_key = the _pair_test parameters."""
+  """Sweep from each sorted box over the boxes that start inside it; one thread per (world, box).
+
+  static_key = the _pair_test parameters.
+  """
   pair_test = _pair_test(*static_key)
 
   @wp.kernel(module="unique", enable_backward=False)
@@ -189,8 +217,6 @@ def sweep_kernel(static_key: tuple, axis: int):
     aabb_hi: wp.array2d(dtype=wp.vec3),
     max_pairs: int,
     warn: bool,
-    # In/out: warm-started order
-    sap_init: wp.array(dtype=int),
     order: wp.array2d(dtype=int),
     # Out:
     world_npair_out: wp.array(dtype=int),
@@ -206,83 +232,67 @@ def sweep_kernel(static_key: tuple, axis: int):
     stock_pairid_out: wp.array(dtype=wp.vec2i),
     stock_worldid_out: wp.array(dtype=int),
   ):
-    worldid = wp.tid()
-    if sap_init[worldid] == 0:
-      for k in range(ngeom):
-        order[worldid, k] = k
-      sap_init[worldid] = 1
-
-    # insertion sort on the lower bound, starting from last step's order
-    for k in range(1, ngeom):
-      g = order[worldid, k]
-      key = aabb_lo[worldid, g][axis]
-      j = k
-      while j > 0 and aabb_lo[worldid, order[worldid, j - 1]][axis] > key:
-        order[worldid, j] = order[worldid, j - 1]
-        j -= 1
-      order[worldid, j] = g
-
-    for a in range(ngeom):
-      ga = order[worldid, a]
-      lo_a = aabb_lo[worldid, ga]
-      hi_a = aabb_hi[worldid, ga]
-      if lo_a[axis] > hi_a[axis]:
-        continue  # empty box: absent mesh or non-finite pose
-      for b in range(a + 1, ngeom):
-        gb = order[worldid, b]
-        lo_b = aabb_lo[worldid, gb]
-        if lo_b[axis] > hi_a[axis]:
-          break  # every later box starts beyond this one
-        hi_b = aabb_hi[worldid, gb]
-        if lo_b[axis] > hi_b[axis] or not _overlap(lo_a, hi_a, lo_b, hi_b):
-          continue
-        g1 = wp.min(ga, gb)
-        g2 = wp.max(ga, gb)
-        pairid = nxn_pairid[upper_tri_index(ngeom, g1, g2)]
-        if pairid[0] == -2 or pairid[0] >= 0 or pairid[1] >= 0:
-          continue  # filtered out, or an explicit/sensor pair (tested by explicit_pairs)
-        if not pair_test(
-          geom_bodyid,
-          geom_aabb,
-          geom_rbound,
-          geom_margin,
-          geom_gap,
-          pair_margin,
-          pair_gap,
-          geom_xpos_in,
-          geom_xmat_in,
-          body_awake_in,
-          awake_prev_in,
-          g1,
-          g2,
-          pairid,
-          worldid,
-        ):
-          continue
-        _emit(
-          g1,
-          g2,
-          geom_type[g1],
-          geom_type[g2],
-          pairid,
-          worldid,
-          geom_stock[g1] != 0 or geom_stock[g2] != 0,
-          max_pairs,
-          naconmax_in,
-          warn,
-          world_npair_out,
-          npair_out,
-          pair_out,
-          pairid_out,
-          pair_worldid_out,
-          ndropped_out,
-          nwarned_out,
-          overflow_out,
-          ncollision_out,
-          stock_pair_out,
-          stock_pairid_out,
-          stock_worldid_out,
-        )
+    worldid, a = wp.tid()
+    ga = order[worldid, a]
+    lo_a = aabb_lo[worldid, ga]
+    hi_a = aabb_hi[worldid, ga]
+    if lo_a[axis] > hi_a[axis]:
+      return  # empty box: absent mesh or non-finite pose
+    for b in range(a + 1, ngeom):
+      gb = order[worldid, b]
+      lo_b = aabb_lo[worldid, gb]
+      if lo_b[axis] > hi_a[axis]:
+        break  # every later box starts beyond this one
+      hi_b = aabb_hi[worldid, gb]
+      if lo_b[axis] > hi_b[axis] or not _overlap(lo_a, hi_a, lo_b, hi_b):
+        continue
+      g1 = wp.min(ga, gb)
+      g2 = wp.max(ga, gb)
+      pairid = nxn_pairid[upper_tri_index(ngeom, g1, g2)]
+      if pairid[0] == -2 or pairid[0] >= 0 or pairid[1] >= 0:
+        continue  # filtered out, or an explicit/sensor pair (tested by explicit_pairs)
+      if not pair_test(
+        geom_bodyid,
+        geom_aabb,
+        geom_rbound,
+        geom_margin,
+        geom_gap,
+        pair_margin,
+        pair_gap,
+        geom_xpos_in,
+        geom_xmat_in,
+        body_awake_in,
+        awake_prev_in,
+        g1,
+        g2,
+        pairid,
+        worldid,
+      ):
+        continue
+      _emit(
+        g1,
+        g2,
+        geom_type[g1],
+        geom_type[g2],
+        pairid,
+        worldid,
+        geom_stock[g1] != 0 or geom_stock[g2] != 0,
+        max_pairs,
+        naconmax_in,
+        warn,
+        world_npair_out,
+        npair_out,
+        pair_out,
+        pairid_out,
+        pair_worldid_out,
+        ndropped_out,
+        nwarned_out,
+        overflow_out,
+        ncollision_out,
+        stock_pair_out,
+        stock_pairid_out,
+        stock_worldid_out,
+      )
 
   return sweep
 

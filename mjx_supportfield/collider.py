@@ -208,11 +208,12 @@ class Collider:
     common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo,
                    st.aabb_hi]
     if self.ngeom > 1:
+      wp.launch(broadphase.sort_endpoints, dim=d.nworld, inputs=[self.ngeom, self.options.sap_axis, st.aabb_lo],
+                outputs=[st.sap_init, st.order])
       wp.launch(
         broadphase.sweep_kernel(key, self.options.sap_axis),
-        dim=d.nworld,
-        inputs=[self.ngeom] + common_model + [m.nxn_pairid] + common_data
-        + [self.max_pairs, warn, st.sap_init, st.order],
+        dim=(d.nworld, self.ngeom),
+        inputs=[self.ngeom] + common_model + [m.nxn_pairid] + common_data + [self.max_pairs, warn, st.order],
         outputs=outputs,
       )
     if self.nexplicit:

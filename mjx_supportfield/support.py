@@ -21,16 +21,31 @@ def field_cell(ms: MeshSupport, mesh: int, i: int, j: int) -> int:
 
 
 @wp.func
+def _cell_coords(ms: MeshSupport, mesh: int, d: wp.vec3) -> wp.vec2:
+  """Continuous (u, v) field coordinates of direction d: u along theta, v along phi."""
+  fres = float(ms.field_res[mesh])
+  theta = wp.atan2(d[1], d[0])
+  phi = wp.acos(wp.clamp(d[2] / wp.max(wp.length(d), 1.0e-30), -1.0, 1.0))
+  return wp.vec2((theta + wp.pi) / (2.0 * wp.pi) * fres, phi / wp.pi * (fres - 1.0))
+
+
+@wp.func
+def field_nearest(ms: MeshSupport, mesh: int, d: wp.vec3) -> int:
+  """Hull vertex stored in the field cell nearest to direction d (one read: a start point)."""
+  res = ms.field_res[mesh]
+  uv = _cell_coords(ms, mesh, d)
+  i = int(wp.round(uv[0])) % res
+  j = wp.clamp(int(wp.round(uv[1])), 0, res - 1)
+  return field_cell(ms, mesh, i, j)
+
+
+@wp.func
 def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3) -> int:
   """Best hull vertex among the 4 field cells bracketing direction d (mesh frame)."""
   res = ms.field_res[mesh]
-  fres = float(res)
-  theta = wp.atan2(d[1], d[0])
-  phi = wp.acos(wp.clamp(d[2] / wp.max(wp.length(d), 1.0e-30), -1.0, 1.0))
-  u = (theta + wp.pi) / (2.0 * wp.pi) * fres
-  v = phi / wp.pi * (fres - 1.0)
-  i0 = int(wp.floor(u))
-  j0 = wp.clamp(int(wp.floor(v)), 0, res - 1)
+  uv = _cell_coords(ms, mesh, d)
+  i0 = int(wp.floor(uv[0]))
+  j0 = wp.clamp(int(wp.floor(uv[1])), 0, res - 1)
   i1 = (i0 + 1) % res
   i0 = ((i0 % res) + res) % res
   j1 = wp.min(j0 + 1, res - 1)
@@ -88,10 +103,10 @@ def mesh_support_index(ms: MeshSupport, mesh: int, d: wp.vec3, mode: int) -> int
   """Local hull index of the support vertex of a mesh in direction d (mesh frame)."""
   if mode == SUPPORT_EXACT or ms.field_res[mesh] == 0:
     return hull_scan(ms, mesh, d)
-  best = field_lookup(ms, mesh, d)
-  if mode == SUPPORT_REFINED:
-    best = hill_climb(ms, mesh, best, d)
-  return best
+  if mode == SUPPORT_REFINED and ms.nbr_num[ms.hull_adr[mesh]] > 0:
+    # the climb certifies the answer, so one cell is enough to start from
+    return hill_climb(ms, mesh, field_nearest(ms, mesh, d), d)
+  return field_lookup(ms, mesh, d)
 
 
 @wp.func

@@ -51,10 +51,8 @@ def _emit(
   warn: bool,
   # Out:
   world_npair_out: wp.array(dtype=int),
-  npair_out: wp.array(dtype=int),
-  pair_out: wp.array(dtype=wp.vec2i),
-  pairid_out: wp.array(dtype=wp.vec2i),
-  pair_worldid_out: wp.array(dtype=int),
+  slot_pair_out: wp.array(dtype=wp.vec2i),
+  slot_pairid_out: wp.array(dtype=wp.vec2i),
   ndropped_out: wp.array(dtype=int),
   nwarned_out: wp.array(dtype=int),
   overflow_out: wp.array(dtype=int),
@@ -90,10 +88,11 @@ def _emit(
           worldid,
         )
     return
-  cid = wp.atomic_add(npair_out, 0, 1)
-  pair_out[cid] = pair
-  pairid_out[cid] = pairid
-  pair_worldid_out[cid] = worldid
+  # per-world slots: compact_pairs later lays the worlds out back to back, in world order,
+  # so narrow-phase warps see pairs of one world (similar shapes) together
+  slot = worldid * max_pairs + k
+  slot_pair_out[slot] = pair
+  slot_pairid_out[slot] = pairid
 
 
 @functools.lru_cache(maxsize=None)
@@ -220,10 +219,8 @@ def sweep_kernel(static_key: tuple, axis: int):
     order: wp.array2d(dtype=int),
     # Out:
     world_npair_out: wp.array(dtype=int),
-    npair_out: wp.array(dtype=int),
-    pair_out: wp.array(dtype=wp.vec2i),
-    pairid_out: wp.array(dtype=wp.vec2i),
-    pair_worldid_out: wp.array(dtype=int),
+    slot_pair_out: wp.array(dtype=wp.vec2i),
+    slot_pairid_out: wp.array(dtype=wp.vec2i),
     ndropped_out: wp.array(dtype=int),
     nwarned_out: wp.array(dtype=int),
     overflow_out: wp.array(dtype=int),
@@ -281,10 +278,8 @@ def sweep_kernel(static_key: tuple, axis: int):
         naconmax_in,
         warn,
         world_npair_out,
-        npair_out,
-        pair_out,
-        pairid_out,
-        pair_worldid_out,
+        slot_pair_out,
+        slot_pairid_out,
         ndropped_out,
         nwarned_out,
         overflow_out,
@@ -329,10 +324,8 @@ def explicit_kernel(static_key: tuple):
     warn: bool,
     # Out:
     world_npair_out: wp.array(dtype=int),
-    npair_out: wp.array(dtype=int),
-    pair_out: wp.array(dtype=wp.vec2i),
-    pairid_out: wp.array(dtype=wp.vec2i),
-    pair_worldid_out: wp.array(dtype=int),
+    slot_pair_out: wp.array(dtype=wp.vec2i),
+    slot_pairid_out: wp.array(dtype=wp.vec2i),
     ndropped_out: wp.array(dtype=int),
     nwarned_out: wp.array(dtype=int),
     overflow_out: wp.array(dtype=int),
@@ -379,10 +372,8 @@ def explicit_kernel(static_key: tuple):
       naconmax_in,
       warn,
       world_npair_out,
-      npair_out,
-      pair_out,
-      pairid_out,
-      pair_worldid_out,
+      slot_pair_out,
+      slot_pairid_out,
       ndropped_out,
       nwarned_out,
       overflow_out,
@@ -393,3 +384,37 @@ def explicit_kernel(static_key: tuple):
     )
 
   return explicit_pairs
+
+
+@wp.kernel
+def clamp_counts(max_pairs: int, world_npair: wp.array(dtype=int), world_count_out: wp.array(dtype=int)):
+  """Pairs kept per world (the counter also counts the dropped ones)."""
+  worldid = wp.tid()
+  world_count_out[worldid] = wp.min(world_npair[worldid], max_pairs)
+
+
+@wp.kernel
+def compact_pairs(
+  max_pairs: int,
+  world_count: wp.array(dtype=int),
+  world_start: wp.array(dtype=int),
+  slot_pair: wp.array(dtype=wp.vec2i),
+  slot_pairid: wp.array(dtype=wp.vec2i),
+  # Out:
+  npair_out: wp.array(dtype=int),
+  pair_out: wp.array(dtype=wp.vec2i),
+  pairid_out: wp.array(dtype=wp.vec2i),
+  pair_worldid_out: wp.array(dtype=int),
+):
+  """Copies each world's slots to its range of the pair list (world_start: exclusive scan)."""
+  worldid, k = wp.tid()
+  n = world_count[worldid]
+  if k == 0 and worldid == world_count.shape[0] - 1:
+    npair_out[0] = world_start[worldid] + n
+  if k >= n:
+    return
+  src = worldid * max_pairs + k
+  dst = world_start[worldid] + k
+  pair_out[dst] = slot_pair[src]
+  pairid_out[dst] = slot_pairid[src]
+  pair_worldid_out[dst] = worldid

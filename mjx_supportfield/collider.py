@@ -42,7 +42,11 @@ class DataState:
   npair: wp.array
   ndropped: wp.array
   nwarned: wp.array
-  pair: wp.array
+  slot_pair: wp.array  # per-world slots written by the sweep
+  slot_pairid: wp.array
+  world_count: wp.array
+  world_start: wp.array
+  pair: wp.array  # the compacted pair list, worlds back to back
   pairid: wp.array
   pair_worldid: wp.array
   stock_ctx: CollisionContext
@@ -132,6 +136,10 @@ class Collider:
         npair=wp.zeros(1, dtype=int),
         ndropped=wp.zeros(nworld, dtype=int),
         nwarned=wp.zeros(1, dtype=int),
+        slot_pair=wp.zeros(capacity, dtype=wp.vec2i),
+        slot_pairid=wp.zeros(capacity, dtype=wp.vec2i),
+        world_count=wp.zeros(nworld, dtype=int),
+        world_start=wp.zeros(nworld, dtype=int),
         pair=wp.zeros(capacity, dtype=wp.vec2i),
         pairid=wp.zeros(capacity, dtype=wp.vec2i),
         pair_worldid=wp.zeros(capacity, dtype=int),
@@ -200,7 +208,7 @@ class Collider:
     awake_prev_in = awake_prev if incremental else d.body_awake
     warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
     outputs = [
-      st.world_npair, st.npair, st.pair, st.pairid, st.pair_worldid, st.ndropped, st.nwarned, d.overflow, d.ncollision,
+      st.world_npair, st.slot_pair, st.slot_pairid, st.ndropped, st.nwarned, d.overflow, d.ncollision,
       st.stock_ctx.collision_pair, st.stock_ctx.collision_pairid, st.stock_ctx.collision_worldid,
     ]
     common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
@@ -223,6 +231,14 @@ class Collider:
         inputs=common_model + common_data + [self.explicit_pair, self.explicit_pairid, self.max_pairs, warn],
         outputs=outputs,
       )
+    wp.launch(broadphase.clamp_counts, dim=d.nworld, inputs=[self.max_pairs, st.world_npair], outputs=[st.world_count])
+    wp.utils.array_scan(st.world_count, st.world_start, inclusive=False)
+    wp.launch(
+      broadphase.compact_pairs,
+      dim=(d.nworld, self.max_pairs),
+      inputs=[self.max_pairs, st.world_count, st.world_start, st.slot_pair, st.slot_pairid],
+      outputs=[st.npair, st.pair, st.pairid, st.pair_worldid],
+    )
 
   def _contact_outputs(self, d):
     c = d.contact

@@ -44,10 +44,11 @@ def _bench(args) -> int:
     progress = bench.Progress(len(args.model) * len(nworlds) * 2)
     for path in args.model:
       rows += bench.bench_scene(path, nworlds, args.steps, args.settle, args.nconmax, Options(), progress)
+      if args.json:  # after each scene, so a run cut short keeps what it measured
+        bench.write_json(rows, args.json)
     print(f"device: {bench.device_name()}")
     print(bench.format_table(rows))
     if args.json:
-      bench.write_json(rows, args.json)
       print(f"wrote {args.json}")
   if args.plot:
     try:

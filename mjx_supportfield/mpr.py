@@ -199,9 +199,12 @@ def mpr_refined(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, to
   point just behind the origin (-depth/2 along the normal) sends the ray along the normal;
   on curved surfaces this walks to the point whose surface normal is the ray, the minimum.
   """
-  best = mpr(a, b, ms, mode, interior_point(a, b, scale), scale, tol, iterations)
+  p0 = interior_point(a, b, scale)
+  best = mpr(a, b, ms, mode, p0, scale, tol, iterations)
   if best.hit == 0:
     return best
+  if wp.dot(best.normal, wp.normalize(-p0.v)) > 1.0 - 1.0e-6:
+    return best  # the ray already runs along the normal: MPR's fixed point
   for _ in range(refine):
     if best.depth <= 1.0e-6 * scale:
       break
@@ -210,5 +213,9 @@ def mpr_refined(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, to
     r = mpr(a, b, ms, mode, q0, scale, tol, iterations)
     if r.hit == 0 or r.depth >= best.depth - tol * scale:
       break
+    # the same normal again (a flat face of a polytope, or converged): nothing left to gain
+    done = wp.dot(r.normal, best.normal) > 1.0 - 1.0e-6
     best = r
+    if done:
+      break
   return best

@@ -110,26 +110,32 @@ def main(argv=None) -> int:
   args = _parser().parse_args(argv)
   models = args.model if isinstance(getattr(args, "model", None), list) else [getattr(args, "model", None)]
   for path in models:
-    if path is not None and not os.path.isfile(path):
-      print(f"mjx-supportfield: error: model file not found: {path}", file=sys.stderr)
-      return 2
+    if path is None:
+      continue
+    if not os.path.isfile(path):
+      return _error(f"model file not found: {path}")
+    try:  # validate before Warp starts (and prints its own banner)
+      import mujoco
+
+      mujoco.MjModel.from_xml_path(path)
+    except ValueError as e:
+      return _error(f"{path}: {e}")
   if args.command == "compare":
-    for name in ("steps", "samples", "nworld"):
+    for name, low in (("steps", 0), ("samples", 1), ("nworld", 1)):
       value = getattr(args, name)
-      if value is not None and value < (0 if name == "steps" else 1):
-        print(f"mjx-supportfield: error: --{name} must be positive, got {value}", file=sys.stderr)
-        return 2
+      if value is not None and value < low:
+        return _error(f"--{name} must be >= {low}, got {value}")
   try:
     return args.func(args)
   except ValueError as e:  # invalid options, bad model, mismatched models
-    print(f"mjx-supportfield: error: {e}", file=sys.stderr)
-    return 2
-  except Exception as e:  # noqa: BLE001 -- MuJoCo's XML errors are plain Exceptions
-    if type(e).__name__ in ("FatalError", "ValueError") or "XML" in str(e) or "Error" in type(e).__name__:
-      print(f"mjx-supportfield: error: {type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else e}",
-            file=sys.stderr)
-      return 2
-    raise
+    return _error(str(e))
+
+
+def _error(message: str) -> int:
+  """Prints one error line (multi-line messages, such as MuJoCo's XML errors, are joined)."""
+  line = "; ".join(x.strip() for x in message.splitlines() if x.strip())
+  print(f"mjx-supportfield: error: {line}", file=sys.stderr)
+  return 2
 
 
 if __name__ == "__main__":

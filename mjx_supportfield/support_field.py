@@ -1,8 +1,10 @@
 """Builds the support field of every mesh from MuJoCo's convex hulls.
 
 A field is a lat-long grid of ``res x res`` directions per mesh; each cell stores the
-16-bit local index of the hull vertex that is extreme in that direction (positions are
+15-bit local index of the hull vertex that is extreme in that direction (positions are
 gathered from MuJoCo's ``mesh_vert``), so a cell costs 2 bytes instead of the seed's 16.
+The 16th bit certifies the cell's quad: its vertex is proven to be the support for every
+direction between the quad's 4 corners, so a query there needs one read and no climb.
 Geoms that share a mesh share its field. Each mesh gets one resolution step above the
 smallest (up to 64) at which the plain 4-cell lookup (``support_mode="field"``) returns the
 exact support on a dense check set (4 directions inside every cell plus random ones), else
@@ -16,6 +18,9 @@ import mujoco
 import numpy as np
 import warp as wp
 
+from mjx_supportfield.support import CERTIFIED
+from mjx_supportfield.support import INDEX_MASK
+from mjx_supportfield.support import field_cell
 from mjx_supportfield.support import field_lookup
 from mjx_supportfield.support import hill_climb
 from mjx_supportfield.support import hull_point
@@ -30,7 +35,7 @@ _NCHECK_SUB = 2  # in-cell samples per cell side
 # become exact at any finite resolution, since near each face normal three or more vertex
 # cones meet inside one cell, so those meshes get the cap without paying for finer checks
 _ADAPTIVE_MAX = 64
-_MAX_HULL = 65535  # largest hull a 16-bit field can index
+_MAX_HULL = INDEX_MASK  # largest hull a cell's 15 index bits can address
 
 
 @dataclasses.dataclass
@@ -121,7 +126,7 @@ def _check_field(
   k = wp.tid()
   mesh = check_mesh[k]
   d = check_dir[k]
-  found = field_lookup(ms, mesh, d)
+  found, _ = field_lookup(ms, mesh, d)
   # hill-climbing on the hull graph is exact and cheaper than a scan; without a graph, scan
   if ms.nbr_num[ms.hull_adr[mesh] + found] > 0:
     truth = hill_climb(ms, mesh, found, d)
@@ -157,11 +162,97 @@ def _layout(ms: MeshSupport, field_res: np.ndarray, device) -> np.ndarray:
   return np.repeat(np.arange(len(field_res), dtype=np.int32), ncells)
 
 
-def _build(ms: MeshSupport, field_res: np.ndarray, device):
+@wp.func
+def _min_on_meridian(a: wp.vec3, theta: float, ph0: float, ph1: float) -> float:
+  """min of a . d over the arc theta = const, phi in [ph0, ph1]: R cos(phi - phi*)."""
+  p = a[0] * wp.cos(theta) + a[1] * wp.sin(theta)
+  f0 = p * wp.sin(ph0) + a[2] * wp.cos(ph0)
+  f1 = p * wp.sin(ph1) + a[2] * wp.cos(ph1)
+  m = wp.min(f0, f1)
+  star = wp.atan2(p, a[2])
+  for k in range(2):
+    crit = star + wp.where(k == 0, wp.pi, -wp.pi)
+    if crit >= ph0 and crit <= ph1:
+      m = wp.min(m, -wp.sqrt(p * p + a[2] * a[2]))
+  return m
+
+
+@wp.func
+def _min_on_parallel(a: wp.vec3, phi: float, th0: float, th1: float) -> float:
+  """min of a . d over the arc phi = const, theta in [th0, th1]."""
+  sp = wp.sin(phi)
+  cp = wp.cos(phi)
+  f0 = sp * (a[0] * wp.cos(th0) + a[1] * wp.sin(th0)) + a[2] * cp
+  f1 = sp * (a[0] * wp.cos(th1) + a[1] * wp.sin(th1)) + a[2] * cp
+  m = wp.min(f0, f1)
+  crit = wp.atan2(a[1], a[0]) + wp.pi  # where cos(theta - theta*) = -1
+  for k in range(3):
+    t = crit + 2.0 * wp.pi * float(k - 1)
+    if t >= th0 and t <= th1:
+      m = wp.min(m, -sp * wp.sqrt(a[0] * a[0] + a[1] * a[1]) + a[2] * cp)
+  return m
+
+
+@wp.func
+def min_on_quad(a: wp.vec3, th0: float, th1: float, ph0: float, ph1: float) -> float:
+  """min of a . d over the directions with theta in [th0, th1] and phi in [ph0, ph1].
+
+  A linear function on the sphere has one interior minimum, at -a/|a|; elsewhere the
+  minimum lies on the quad's two meridian arcs or two parallel arcs.
+  """
+  m = wp.min(wp.min(_min_on_meridian(a, th0, ph0, ph1), _min_on_meridian(a, th1, ph0, ph1)),
+             wp.min(_min_on_parallel(a, ph0, th0, th1), _min_on_parallel(a, ph1, th0, th1)))
+  n = wp.length(a)
+  if n > 0.0:
+    t = wp.atan2(-a[1], -a[0])
+    if t < th0:
+      t += 2.0 * wp.pi
+    f = wp.acos(wp.clamp(-a[2] / n, -1.0, 1.0))
+    if t <= th1 and f >= ph0 and f <= ph1:
+      m = wp.min(m, -n)
+  return m
+
+
+@wp.kernel
+def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16)):
+  """Flags quads whose 4 corners share a vertex that beats all its hull neighbours inside the quad.
+
+  On a convex hull a vertex that no neighbour beats is the support, so the flag is a proof.
+  """
+  cell = wp.tid()
+  mesh = cell_mesh[cell]
+  res = ms.field_res[mesh]
+  local = cell - ms.field_adr[mesh]
+  i = local % res
+  j = local // res
+  if j >= res - 1:
+    return
+  i1 = (i + 1) % res
+  v = field_cell(ms, mesh, i, j)
+  if field_cell(ms, mesh, i1, j) != v or field_cell(ms, mesh, i, j + 1) != v or field_cell(ms, mesh, i1, j + 1) != v:
+    return
+  g = ms.hull_adr[mesh] + v
+  if ms.nbr_num[g] == 0:
+    return  # no hull graph: nothing to prove it with
+  th0 = 2.0 * wp.pi * float(i) / float(res) - wp.pi
+  th1 = th0 + 2.0 * wp.pi / float(res)
+  ph0 = wp.pi * float(j) / float(res - 1)
+  ph1 = wp.pi * float(j + 1) / float(res - 1)
+  pv = hull_point(ms, mesh, v)
+  for k in range(ms.nbr_num[g]):
+    a = pv - hull_point(ms, mesh, ms.nbr[ms.nbr_adr[g] + k])
+    if min_on_quad(a, th0, th1, ph0, ph1) < 0.0:
+      return
+  field_out[cell] = wp.uint16(v | CERTIFIED)
+
+
+def _build(ms: MeshSupport, field_res: np.ndarray, device, certify: bool = False):
   cell_mesh = _layout(ms, field_res, device)
   if len(cell_mesh):
-    wp.launch(_build_field, dim=len(cell_mesh), inputs=[ms, wp.array(cell_mesh, dtype=int, device=device)],
-              outputs=[ms.field], device=device)
+    cells = wp.array(cell_mesh, dtype=int, device=device)
+    wp.launch(_build_field, dim=len(cell_mesh), inputs=[ms, cells], outputs=[ms.field], device=device)
+    if certify:
+      wp.launch(_certify, dim=len(cell_mesh), inputs=[ms, cells], outputs=[ms.field], device=device)
 
 
 def choose_resolutions(ms: MeshSupport, hull_num: np.ndarray, cap: int, device) -> np.ndarray:
@@ -231,7 +322,7 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.nbr_num = arr(hd.nbr_num)
   ms.nbr = arr(hd.nbr)
   field_res = choose_resolutions(ms, hd.hull_num, res, device) if adaptive else np.where(hd.hull_num > 0, res, 0)
-  _build(ms, np.asarray(field_res, dtype=np.int32), device)
+  _build(ms, np.asarray(field_res, dtype=np.int32), device, certify=True)
   return ms
 
 

@@ -268,11 +268,12 @@ class Collider:
         dim=nthread,
         inputs=[
           m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-          m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
+          m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.pair_dim,
           m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
           m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, self.mpr_pair_type,
           SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
-          self.options.mpr_refine,
+          self.options.mpr_refine, self.options.max_contacts_per_pair if self.options.multi_contact else 1,
+          self.options.mc_perturbation, self.options.mc_tolerance,
         ] + pair_inputs,
         outputs=self._contact_outputs(d),
       )

@@ -16,6 +16,8 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.multicontact import Patch
+from mjx_supportfield.multicontact import perturbed_contacts
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -226,6 +228,7 @@ def mpr_narrowphase(
   geom_margin: wp.array2d(dtype=float),
   geom_gap: wp.array2d(dtype=float),
   geom_adhesion: wp.array2d(dtype=float),
+  geom_aabb: wp.array3d(dtype=wp.vec3),
   pair_dim: wp.array(dtype=int),
   pair_solref: wp.array2d(dtype=wp.vec2),
   pair_solreffriction: wp.array2d(dtype=wp.vec2),
@@ -245,6 +248,9 @@ def mpr_narrowphase(
   tolerance: float,
   iterations: int,
   refine: int,
+  max_contacts: int,
+  mc_perturbation: float,
+  mc_tolerance: float,
   npair_in: wp.array(dtype=int),
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
@@ -268,7 +274,9 @@ def mpr_narrowphase(
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
 ):
-  """One deepest contact per convex pair, by MPR on the shapes' support functions."""
+  """Contacts of convex pairs by MPR on the shapes' support functions: the deepest point, then
+  up to max_contacts - 1 more by pose perturbation (not for spheres and ellipsoids, where
+  one point is the whole contact)."""
   tid = wp.tid()
   for cid in range(tid, npair_in[0], nthread):
     geoms = pair_in[cid]
@@ -310,39 +318,58 @@ def mpr_narrowphase(
     res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
     if res.hit == 0:
       continue
-    dist = band - res.depth
-    pos = res.pos - 0.5 * band * res.normal
-    write_contact(
-      naconmax_in,
-      0,
-      dist,
-      pos,
-      make_frame(res.normal),
-      margin,
-      gap,
-      condim,
-      friction,
-      solref,
-      solreffriction,
-      solimp,
-      adhesion,
-      geoms,
-      pairid_in[cid],
-      worldid,
-      contact_dist_out,
-      contact_pos_out,
-      contact_frame_out,
-      contact_includemargin_out,
-      contact_friction_out,
-      contact_solref_out,
-      contact_solreffriction_out,
-      contact_solimp_out,
-      contact_dim_out,
-      contact_geom_out,
-      contact_efc_address_out,
-      contact_worldid_out,
-      contact_type_out,
-      contact_geomcollisionid_out,
-      contact_adhesion_out,
-      nacon_out,
+    frame = make_frame(res.normal)
+    extra = Patch()
+    extra.n = 0
+    one_point = (
+      geom_type[g1] == GeomType.SPHERE
+      or geom_type[g1] == GeomType.ELLIPSOID
+      or geom_type[g2] == GeomType.SPHERE
+      or geom_type[g2] == GeomType.ELLIPSOID
     )
+    if max_contacts > 1 and not one_point:
+      # duplicates: closer than mc_tolerance x the smaller geom's box size
+      ab = worldid % geom_aabb.shape[0]
+      size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
+      extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
+                                 mc_tolerance * size)
+    for k in range(1 + wp.min(extra.n, max_contacts - 1)):
+      depth = res.depth
+      pos = res.pos
+      if k > 0:
+        depth = extra.depth[k - 1]
+        pos = wp.vec3(extra.pos[k - 1, 0], extra.pos[k - 1, 1], extra.pos[k - 1, 2])
+      write_contact(
+        naconmax_in,
+        k,
+        band - depth,
+        pos - 0.5 * band * res.normal,
+        frame,
+        margin,
+        gap,
+        condim,
+        friction,
+        solref,
+        solreffriction,
+        solimp,
+        adhesion,
+        geoms,
+        pairid_in[cid],
+        worldid,
+        contact_dist_out,
+        contact_pos_out,
+        contact_frame_out,
+        contact_includemargin_out,
+        contact_friction_out,
+        contact_solref_out,
+        contact_solreffriction_out,
+        contact_solimp_out,
+        contact_dim_out,
+        contact_geom_out,
+        contact_efc_address_out,
+        contact_worldid_out,
+        contact_type_out,
+        contact_geomcollisionid_out,
+        contact_adhesion_out,
+        nacon_out,
+      )

@@ -22,6 +22,11 @@ class Options:
     mpr_refine: MPR reruns along the last normal (the shallowest answer wins); 0 = plain MPR,
       which reports the penetration along the centre-to-centre line.
     sap_axis: axis (0, 1, 2) on which the sweep-and-prune projects the boxes.
+    multi_contact: more contacts per MPR pair by pose perturbation (not for spheres and
+      ellipsoids); analytic pairs keep MuJoCo's own multi-point routines either way.
+    max_contacts_per_pair: contacts per MPR pair with multi_contact (1 to 5).
+    mc_perturbation: tilt angle [rad] of the perturbed poses.
+    mc_tolerance: points closer than this fraction of the smaller geom's box size are duplicates.
   """
 
   support_res: int = 180
@@ -31,6 +36,10 @@ class Options:
   mpr_tolerance: float = 1e-6
   mpr_refine: int = 4
   sap_axis: int = 0
+  multi_contact: bool = True
+  max_contacts_per_pair: int = 5
+  mc_perturbation: float = 1e-2
+  mc_tolerance: float = 1e-2
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)
@@ -41,6 +50,11 @@ class Options:
     _check_float("mpr_tolerance", self.mpr_tolerance, 1e-12, 1e-2)
     _check_int("mpr_refine", self.mpr_refine, 0, 32)
     _check_int("sap_axis", self.sap_axis, 0, 2)
+    if not isinstance(self.multi_contact, bool):
+      raise ValueError(f"Options.multi_contact: expected True or False, got {self.multi_contact!r}")
+    _check_int("max_contacts_per_pair", self.max_contacts_per_pair, 1, 5)
+    _check_float("mc_perturbation", self.mc_perturbation, 1e-5, 0.2)
+    _check_float("mc_tolerance", self.mc_tolerance, 0.0, 0.5)
 
   @classmethod
   def from_dict(cls, values: dict) -> "Options":

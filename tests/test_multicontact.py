@@ -1,0 +1,116 @@
+"""Multi-contact by pose perturbation: flat patches get points spread over the patch, at the
+right depth; spheres and ellipsoids keep one point; the option turns it off."""
+
+import numpy as np
+import pytest
+from conftest import contacts
+from conftest import load
+
+import mujoco
+import mjx_supportfield as sf
+
+CUBE = "-.05 -.05 -.05 .05 -.05 -.05 -.05 .05 -.05 .05 .05 -.05 -.05 -.05 .05 .05 -.05 .05 -.05 .05 .05 .05 .05 .05"
+XML = f"""
+<mujoco>
+  <asset><mesh name="cube" vertex="{CUBE}"/></asset>
+  <worldbody>
+    <body pos="0 0 0.05"><freejoint/><geom name="lo" type="mesh" mesh="cube"/></body>
+    <body pos="0.01 0.02 0.149" euler="0 0 20"><freejoint/><geom name="hi" type="mesh" mesh="cube"/></body>
+    <body pos="1 0 0.05"><freejoint/><geom name="base" type="box" size=".05 .05 .05"/></body>
+    <body pos="1 0 0.139"><freejoint/><geom name="cyl" type="cylinder" size=".03 .04"/></body>
+    <body pos="2 0 0.05"><freejoint/><geom name="blk" type="box" size=".05 .05 .05"/></body>
+    <body pos="2 0 0.129"><freejoint/><geom name="ball" type="ellipsoid" size=".03 .03 .03"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.fixture(scope="module")
+def result():
+  out = {}
+  for multi in (True, False):
+    sim = load(XML)
+    sf.install(sim.mjm, sim.m, sf.Options(multi_contact=multi))
+    sf.collision(sim.m, sim.d)
+    out[multi] = (sim, contacts(sim.d, 0))
+  return out
+
+
+def _pair(sim, c, a, b):
+  ga = mujoco.mj_name2id(sim.mjm, mujoco.mjtObj.mjOBJ_GEOM, a)
+  gb = mujoco.mj_name2id(sim.mjm, mujoco.mjtObj.mjOBJ_GEOM, b)
+  sel = [i for i in range(c.n) if set(c.geom[i]) == {ga, gb}]
+  return c.dist[sel], c.pos[sel], c.normal[sel]
+
+
+def test_face_on_face_spans_the_patch(result):
+  sim, c = result[True]
+  dist, pos, normal = _pair(sim, c, "lo", "hi")
+  assert 4 <= len(dist) <= 5
+  np.testing.assert_allclose(dist, -0.001, atol=1e-5)
+  assert np.all(np.abs(normal[:, 2]) > 0.9999)
+  # every point inside the overlap of the two squares (the lower cube's top face bounds it)
+  assert np.all(np.abs(pos[:, :2]) <= 0.05 + 1e-4)
+  # spread: the points span most of the patch, not one spot
+  span = pos[:, :2].max(axis=0) - pos[:, :2].min(axis=0)
+  assert np.all(span > 0.05), span
+
+
+def test_cylinder_end_on_box_rim_points(result):
+  sim, c = result[True]
+  dist, pos, _ = _pair(sim, c, "base", "cyl")
+  assert len(dist) == 5
+  np.testing.assert_allclose(dist, -0.001, atol=1e-5)
+  radial = np.linalg.norm(pos[:, :2] - [1.0, 0.0], axis=1)
+  assert np.sum(radial > 0.029) == 4 and np.all(radial < 0.0301)  # four on the rim, one inside
+
+
+def test_round_shapes_keep_one_point(result):
+  sim, c = result[True]
+  dist, _, _ = _pair(sim, c, "blk", "ball")
+  assert len(dist) == 1
+  assert dist[0] == pytest.approx(-0.001, abs=1e-5)
+
+
+def test_off_gives_one_point_per_pair(result):
+  sim, c = result[False]
+  for a, b in (("lo", "hi"), ("base", "cyl"), ("blk", "ball")):
+    assert len(_pair(sim, c, a, b)[0]) == 1
+
+
+STACK_XML = f"""
+<mujoco>
+  <option timestep="0.002"/>
+  <asset><mesh name="cube" vertex="{CUBE}"/></asset>
+  <worldbody>
+    <geom name="floor" type="plane" size="2 2 .1"/>
+    <body pos="0 0 0.0495"><freejoint/><geom name="lo" type="mesh" mesh="cube"/></body>
+    <body pos="0.01 0.02 0.1485" euler="0 0 20"><freejoint/><geom name="hi" type="mesh" mesh="cube"/></body>
+    <body pos="1 0 0.0495"><freejoint/><geom name="base" type="box" size=".05 .05 .05"/></body>
+    <body pos="1 0 0.1385"><freejoint/><geom name="cyl" type="cylinder" size=".03 .04"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("multi", [True, False])
+def test_stacked_meshes_rest(multi):
+  """A mesh cube on a mesh cube and a cylinder on a box, stepped through mjw.step: with
+  multi-contact they stay put; one point per pair lets the top cube rock and sink."""
+  import mujoco_warp as mjw
+
+  sim = load(STACK_XML)
+  sf.install(sim.mjm, sim.m, sf.Options(multi_contact=multi))
+  d = mjw.make_data(sim.mjm, nworld=1, nconmax=64, njmax=400)
+  for _ in range(100):
+    mjw.step(sim.m, d)
+  q0 = d.qpos.numpy()[0].copy()
+  for _ in range(900):
+    mjw.step(sim.m, d)
+  q = d.qpos.numpy()[0]
+  assert not np.isnan(q).any()
+  cube, cyl = np.linalg.norm(q[7:10] - q0[7:10]), np.linalg.norm(q[21:24] - q0[21:24])
+  if multi:
+    assert cube < 2e-4 and cyl < 2e-5, (cube, cyl)
+  else:
+    assert cube > 1e-3  # documents why multi-contact is on by default

@@ -32,7 +32,6 @@ _GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
 class DataState:
   """Per-Data buffers: sizes depend on nworld, which install cannot know."""
 
-  nworld: int
   aabb_lo: wp.array
   aabb_hi: wp.array
   nonfinite: wp.array  # per world: 1 if a geom pose held NaN/inf this step
@@ -59,13 +58,12 @@ class Collider:
   def __init__(self, mjm: mujoco.MjModel, m, options: Options):
     self.options = options
     self.ngeom, self.nq, self.nbody = mjm.ngeom, mjm.nq, mjm.nbody
-    self.geom_names = [mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, i) or f"geom {i}" for i in range(mjm.ngeom)]
     device = m.geom_type.device
     self.device = device
     with wp.ScopedDevice(device):
       self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device)
-      geom_types = np.asarray(mjm.geom_type)
-      self.geom_stock = wp.array(np.isin(geom_types, [int(t) for t in STOCK_TYPES]).astype(np.int32), dtype=int)
+      stock = np.isin(np.asarray(mjm.geom_type), [int(t) for t in STOCK_TYPES])
+      self.geom_stock = wp.array(stock.astype(np.int32), dtype=int)
 
       pairs = np.asarray(m.nxn_geom_pair_filtered.numpy()).reshape(-1, 2)
       pairids = np.asarray(m.nxn_pairid_filtered.numpy()).reshape(-1, 2)
@@ -75,7 +73,7 @@ class Collider:
       self.explicit_pairid = wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i)
       # no world can have more pairs than the model allows after its static filters
       self.max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
-      self.has_stock_pairs = bool(self.geom_stock.numpy().any()) or bool((pairids[:, 1] >= 0).any())
+      self.has_stock_pairs = bool(stock.any()) or bool((pairids[:, 1] >= 0).any())
 
       present = self._pair_types_present(mjm, pairs)
       self.analytic_types = tuple(t for t in narrowphase.ANALYTIC_PAIRS if t in present)
@@ -126,7 +124,6 @@ class Collider:
     capacity = nworld * self.max_pairs
     with wp.ScopedDevice(self.device):
       return DataState(
-        nworld=nworld,
         aabb_lo=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
         aabb_hi=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
         nonfinite=wp.zeros(nworld, dtype=int),

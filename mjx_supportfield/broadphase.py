@@ -20,6 +20,22 @@ from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import SleepState
 
 
+@wp.struct
+class PairOutputs:
+  """Where the broad phase writes: per-world pair slots for the plugin, a list for stock."""
+
+  world_npair: wp.array(dtype=int)  # pairs found per world (kept or not)
+  slot_pair: wp.array(dtype=wp.vec2i)  # world * max_pairs + k
+  slot_pairid: wp.array(dtype=wp.vec2i)
+  ndropped: wp.array(dtype=int)  # per world: pairs beyond max_pairs
+  nwarned: wp.array(dtype=int)  # overflow warnings printed this step (one is enough)
+  overflow: wp.array(dtype=int)  # d.overflow
+  ncollision: wp.array(dtype=int)  # d.ncollision: pairs handed to stock MuJoCo Warp
+  stock_pair: wp.array(dtype=wp.vec2i)
+  stock_pairid: wp.array(dtype=wp.vec2i)
+  stock_worldid: wp.array(dtype=int)
+
+
 @wp.func
 def _asleep_pair(s1: int, s2: int) -> bool:
   """MuJoCo Warp's rule: a pair is skipped when both are asleep, or one asleep and one static."""
@@ -50,16 +66,7 @@ def _emit(
   naconmax: int,
   warn: bool,
   # Out:
-  world_npair_out: wp.array(dtype=int),
-  slot_pair_out: wp.array(dtype=wp.vec2i),
-  slot_pairid_out: wp.array(dtype=wp.vec2i),
-  ndropped_out: wp.array(dtype=int),
-  nwarned_out: wp.array(dtype=int),
-  overflow_out: wp.array(dtype=int),
-  ncollision_out: wp.array(dtype=int),
-  stock_pair_out: wp.array(dtype=wp.vec2i),
-  stock_pairid_out: wp.array(dtype=wp.vec2i),
-  stock_worldid_out: wp.array(dtype=int),
+  out: PairOutputs,
 ):
   """Appends a pair to the plugin's list or to the list handed to stock MuJoCo Warp."""
   pair = wp.vec2i(g1, g2)
@@ -68,19 +75,19 @@ def _emit(
 
   if to_stock:
     # stock MuJoCo Warp flags ncollision > naconmax itself (d.overflow, BROADPHASE)
-    cid = wp.atomic_add(ncollision_out, 0, 1)
+    cid = wp.atomic_add(out.ncollision, 0, 1)
     if cid < naconmax:
-      stock_pair_out[cid] = pair
-      stock_pairid_out[cid] = pairid
-      stock_worldid_out[cid] = worldid
+      out.stock_pair[cid] = pair
+      out.stock_pairid[cid] = pairid
+      out.stock_worldid[cid] = worldid
     return
 
-  k = wp.atomic_add(world_npair_out, worldid, 1)
+  k = wp.atomic_add(out.world_npair, worldid, 1)
   if k >= max_pairs:
-    wp.atomic_add(ndropped_out, worldid, 1)
-    wp.atomic_or(overflow_out, worldid, int(OverflowType.BROADPHASE))
+    wp.atomic_add(out.ndropped, worldid, 1)
+    wp.atomic_or(out.overflow, worldid, int(OverflowType.BROADPHASE))
     if warn:
-      if wp.atomic_add(nwarned_out, 0, 1) == 0:
+      if wp.atomic_add(out.nwarned, 0, 1) == 0:
         wp.printf(
           "mjx_supportfield: broadphase overflow - more than %d pairs in world %d; raise Options.max_collision_pairs\n"
           "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.BROADPHASE (or = 0 for all)\n",
@@ -91,8 +98,8 @@ def _emit(
   # per-world slots: compact_pairs later lays the worlds out back to back, in world order,
   # so narrow-phase warps see pairs of one world (similar shapes) together
   slot = worldid * max_pairs + k
-  slot_pair_out[slot] = pair
-  slot_pairid_out[slot] = pairid
+  out.slot_pair[slot] = pair
+  out.slot_pairid[slot] = pairid
 
 
 @functools.lru_cache(maxsize=None)
@@ -218,16 +225,7 @@ def sweep_kernel(static_key: tuple, axis: int):
     warn: bool,
     order: wp.array2d(dtype=int),
     # Out:
-    world_npair_out: wp.array(dtype=int),
-    slot_pair_out: wp.array(dtype=wp.vec2i),
-    slot_pairid_out: wp.array(dtype=wp.vec2i),
-    ndropped_out: wp.array(dtype=int),
-    nwarned_out: wp.array(dtype=int),
-    overflow_out: wp.array(dtype=int),
-    ncollision_out: wp.array(dtype=int),
-    stock_pair_out: wp.array(dtype=wp.vec2i),
-    stock_pairid_out: wp.array(dtype=wp.vec2i),
-    stock_worldid_out: wp.array(dtype=int),
+    out: PairOutputs,
   ):
     worldid, a = wp.tid()
     ga = order[worldid, a]
@@ -277,16 +275,7 @@ def sweep_kernel(static_key: tuple, axis: int):
         max_pairs,
         naconmax_in,
         warn,
-        world_npair_out,
-        slot_pair_out,
-        slot_pairid_out,
-        ndropped_out,
-        nwarned_out,
-        overflow_out,
-        ncollision_out,
-        stock_pair_out,
-        stock_pairid_out,
-        stock_worldid_out,
+        out,
       )
 
   return sweep
@@ -323,16 +312,7 @@ def explicit_kernel(static_key: tuple):
     max_pairs: int,
     warn: bool,
     # Out:
-    world_npair_out: wp.array(dtype=int),
-    slot_pair_out: wp.array(dtype=wp.vec2i),
-    slot_pairid_out: wp.array(dtype=wp.vec2i),
-    ndropped_out: wp.array(dtype=int),
-    nwarned_out: wp.array(dtype=int),
-    overflow_out: wp.array(dtype=int),
-    ncollision_out: wp.array(dtype=int),
-    stock_pair_out: wp.array(dtype=wp.vec2i),
-    stock_pairid_out: wp.array(dtype=wp.vec2i),
-    stock_worldid_out: wp.array(dtype=int),
+    out: PairOutputs,
   ):
     worldid, k = wp.tid()
     geoms = explicit_pair[k]
@@ -371,16 +351,7 @@ def explicit_kernel(static_key: tuple):
       max_pairs,
       naconmax_in,
       warn,
-      world_npair_out,
-      slot_pair_out,
-      slot_pairid_out,
-      ndropped_out,
-      nwarned_out,
-      overflow_out,
-      ncollision_out,
-      stock_pair_out,
-      stock_pairid_out,
-      stock_worldid_out,
+      out,
     )
 
   return explicit_pairs

@@ -50,6 +50,7 @@ class DataState:
   pair_worldid: wp.array
   stock_ctx: CollisionContext
   capacity: int
+  pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
 
 
 class Collider:
@@ -123,7 +124,7 @@ class Collider:
     nworld = d.nworld
     capacity = nworld * self.max_pairs
     with wp.ScopedDevice(self.device):
-      return DataState(
+      st = DataState(
         aabb_lo=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
         aabb_hi=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
         nonfinite=wp.zeros(nworld, dtype=int),
@@ -146,7 +147,15 @@ class Collider:
           collision_worldid=wp.zeros(d.naconmax, dtype=int),
         ),
         capacity=capacity,
+        pair_outputs=broadphase.PairOutputs(),
       )
+    out = st.pair_outputs
+    out.world_npair, out.slot_pair, out.slot_pairid = st.world_npair, st.slot_pair, st.slot_pairid
+    out.ndropped, out.nwarned, out.overflow, out.ncollision = st.ndropped, st.nwarned, d.overflow, d.ncollision
+    out.stock_pair = st.stock_ctx.collision_pair
+    out.stock_pairid = st.stock_ctx.collision_pairid
+    out.stock_worldid = st.stock_ctx.collision_worldid
+    return st
 
   # --- the collision stage ---------------------------------------------------------------
 
@@ -204,10 +213,7 @@ class Collider:
     )
     awake_prev_in = awake_prev if incremental else d.body_awake
     warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
-    outputs = [
-      st.world_npair, st.slot_pair, st.slot_pairid, st.ndropped, st.nwarned, d.overflow, d.ncollision,
-      st.stock_ctx.collision_pair, st.stock_ctx.collision_pairid, st.stock_ctx.collision_worldid,
-    ]
+    outputs = [st.pair_outputs]
     common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
                     m.pair_gap]
     common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo,

@@ -18,6 +18,7 @@ from mjx_supportfield import broadphase
 from mjx_supportfield import narrowphase
 from mjx_supportfield.aabb import update_aabbs
 from mjx_supportfield.options import Options
+from mjx_supportfield.sdf import build_mesh_sdf
 from mjx_supportfield.support_field import build_mesh_support
 from mjx_supportfield.types import CONVEX_TYPES
 from mjx_supportfield.types import STOCK_TYPES
@@ -85,6 +86,12 @@ class Collider:
           mpr_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = 1
           self.mpr_types.append((t1, t2))
       self.mpr_pair_type = wp.array(mpr_table, dtype=int)
+      # hull SDFs for the fallback, for the meshes of geoms that meet another shape through MPR
+      meshes = set()
+      if options.mpr_to_sdf_overlap_ratio > 0 and any(GeomType.MESH in t for t in self.mpr_types):
+        ids = np.asarray(mjm.geom_dataid)[np.asarray(mjm.geom_type) == GeomType.MESH]
+        meshes = {int(x) for x in ids if x >= 0}
+      self.mesh_sdf = build_mesh_sdf(mjm, options.sdf_res, meshes, device)
 
   @staticmethod
   def _pair_types_present(mjm, pairs):
@@ -276,7 +283,8 @@ class Collider:
           m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, self.mpr_pair_type,
           SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
           self.options.mpr_refine, self.options.max_contacts_per_pair if self.options.multi_contact else 1,
-          self.options.mc_perturbation, self.options.mc_tolerance,
+          self.options.mc_perturbation, self.options.mc_tolerance, self.mesh_sdf,
+          self.options.mpr_to_sdf_overlap_ratio,
         ] + pair_inputs,
         outputs=self._contact_outputs(d),
       )

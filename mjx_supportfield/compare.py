@@ -138,6 +138,7 @@ def _summary(per_state: list[dict]) -> dict:
     "median_depth_error": stat("depth_error", np.median),
     "max_depth_error": stat("depth_error", np.max),
     "median_normal_angle_deg": stat("normal_angle_deg", np.median),
+    "pairs_normal_angle_over_5deg": sum(1 for r in rows if r["normal_angle_deg"] > 5.0),
     "max_normal_angle_deg": stat("normal_angle_deg", np.max),
     "median_position_error": stat("position_error", np.median),
     "max_position_error": stat("position_error", np.max),
@@ -183,6 +184,7 @@ def format_report(report: dict) -> str:
     ("max_depth_error", "max depth error [m]", ".2e"),
     ("median_normal_angle_deg", "median normal angle [deg]", ".3f"),
     ("max_normal_angle_deg", "max normal angle [deg]", ".3f"),
+    ("pairs_normal_angle_over_5deg", "pairs with normal angle > 5 deg", "d"),
     ("median_position_error", "median position error [m]", ".2e"),
     ("max_position_error", "max position error [m]", ".2e"),
   ]

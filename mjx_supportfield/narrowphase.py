@@ -18,6 +18,9 @@ from mujoco_warp._src.types import vec5
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.multicontact import Patch
 from mjx_supportfield.multicontact import perturbed_contacts
+from mjx_supportfield.sdf import MeshSdf
+from mjx_supportfield.sdf import needs_sdf
+from mjx_supportfield.sdf import sdf_contact
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -251,6 +254,8 @@ def mpr_narrowphase(
   max_contacts: int,
   mc_perturbation: float,
   mc_tolerance: float,
+  sdf: MeshSdf,
+  sdf_ratio: float,
   npair_in: wp.array(dtype=int),
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
@@ -318,22 +323,32 @@ def mpr_narrowphase(
     res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
     if res.hit == 0:
       continue
-    frame = make_frame(res.normal)
     extra = Patch()
     extra.n = 0
+    # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding
+    # diameter): MPR's portal face need not be the nearest; the SDFs know the nearest surface
+    if needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
+      a.inflate = 0.0
+      fallback = sdf_contact(a, b, ms, sdf, support_mode, 1.0e-4 * scale)
+      if fallback.hit and fallback.depth + band < res.depth:
+        res.depth = fallback.depth + band
+        res.normal = fallback.normal
+        res.pos = fallback.pos + 0.5 * band * fallback.normal
+        extra.n = -1  # a fallback contact is not perturbed
+    frame = make_frame(res.normal)
     one_point = (
       geom_type[g1] == GeomType.SPHERE
       or geom_type[g1] == GeomType.ELLIPSOID
       or geom_type[g2] == GeomType.SPHERE
       or geom_type[g2] == GeomType.ELLIPSOID
     )
-    if max_contacts > 1 and not one_point:
+    if max_contacts > 1 and not one_point and extra.n == 0:
       # duplicates: closer than mc_tolerance x the smaller geom's box size
       ab = worldid % geom_aabb.shape[0]
       size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
       extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
                                  mc_tolerance * size)
-    for k in range(1 + wp.min(extra.n, max_contacts - 1)):
+    for k in range(1 + wp.max(wp.min(extra.n, max_contacts - 1), 0)):
       depth = res.depth
       pos = res.pos
       if k > 0:

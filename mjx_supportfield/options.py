@@ -27,6 +27,10 @@ class Options:
     max_contacts_per_pair: contacts per MPR pair with multi_contact (1 to 5).
     mc_perturbation: tilt angle [rad] of the perturbed poses.
     mc_tolerance: points closer than this fraction of the smaller geom's box size are duplicates.
+    mpr_to_sdf_overlap_ratio: when MPR's depth exceeds this fraction of the smaller geom's
+      bounding diameter (one shape largely inside the other), the contact comes from the
+      shapes' signed-distance fields if they find a shallower one; 0 turns the fallback off.
+    sdf_res: cells along the longest side of a mesh hull's baked SDF.
   """
 
   support_res: int = 180
@@ -40,6 +44,8 @@ class Options:
   max_contacts_per_pair: int = 5
   mc_perturbation: float = 1e-2
   mc_tolerance: float = 1e-2
+  mpr_to_sdf_overlap_ratio: float = 0.5
+  sdf_res: int = 32
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)
@@ -55,6 +61,8 @@ class Options:
     _check_int("max_contacts_per_pair", self.max_contacts_per_pair, 1, 5)
     _check_float("mc_perturbation", self.mc_perturbation, 1e-5, 0.2)
     _check_float("mc_tolerance", self.mc_tolerance, 0.0, 0.5)
+    _check_float("mpr_to_sdf_overlap_ratio", self.mpr_to_sdf_overlap_ratio, 0.0, 100.0)
+    _check_int("sdf_res", self.sdf_res, 8, 256)
 
   @classmethod
   def from_dict(cls, values: dict) -> "Options":

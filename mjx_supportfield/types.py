@@ -14,10 +14,6 @@ CONVEX_TYPES = (GeomType.SPHERE, GeomType.CAPSULE, GeomType.ELLIPSOID, GeomType.
 # geom types whose pairs go to stock MuJoCo Warp
 STOCK_TYPES = (GeomType.HFIELD, GeomType.SDF)
 
-# pair classes written by the broad phase
-PAIR_PLUGIN = 0
-PAIR_STOCK = 1
-
 
 @wp.struct
 class MeshSupport:

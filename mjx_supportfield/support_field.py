@@ -106,13 +106,28 @@ def cell_direction(u: float, v: float, res: int) -> wp.vec3:
 
 
 @wp.kernel
-def _build_field(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16)):
+def _build_field(
+  ms: MeshSupport, cell_mesh: wp.array(dtype=int), extremes: wp.array2d(dtype=int), field_out: wp.array(dtype=wp.uint16)
+):
+  """Support vertex of each cell's direction: hill-climb from the best of the mesh's 26 extreme
+  vertices (exact on a hull graph, and O(climb) instead of O(vertices)); scan without a graph."""
   cell = wp.tid()
   mesh = cell_mesh[cell]
   res = ms.field_res[mesh]
   local = cell - ms.field_adr[mesh]
   d = cell_direction(float(local % res), float(local // res), res)
-  field_out[cell] = wp.uint16(hull_scan(ms, mesh, d))
+  start = extremes[mesh, 0]
+  start_dot = wp.dot(hull_point(ms, mesh, start), d)
+  for k in range(1, 26):
+    e = extremes[mesh, k]
+    ed = wp.dot(hull_point(ms, mesh, e), d)
+    if ed > start_dot:
+      start = e
+      start_dot = ed
+  if ms.nbr_num[ms.hull_adr[mesh] + start] > 0:
+    field_out[cell] = wp.uint16(hill_climb(ms, mesh, start, d))
+  else:
+    field_out[cell] = wp.uint16(hull_scan(ms, mesh, d))
 
 
 @wp.kernel
@@ -246,16 +261,27 @@ def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.arra
   field_out[cell] = wp.uint16(v | CERTIFIED)
 
 
-def _build(ms: MeshSupport, field_res: np.ndarray, device, certify: bool = False):
+def extreme_vertices(hd: HullData, vert: np.ndarray, vertadr: np.ndarray) -> np.ndarray:
+  """Per mesh, the local hull indices of the extreme vertices in the 26 grid directions."""
+  dirs = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)], float)
+  out = np.zeros((len(hd.hull_num), 26), np.int32)
+  for mesh, (adr, num) in enumerate(zip(hd.hull_adr, hd.hull_num)):
+    if num:
+      pts = vert[vertadr[mesh] + hd.hull_vert[adr : adr + num]]
+      out[mesh] = np.argmax(pts @ dirs.T, axis=0)
+  return out
+
+
+def _build(ms: MeshSupport, field_res: np.ndarray, extremes: wp.array, device, certify: bool = False):
   cell_mesh = _layout(ms, field_res, device)
   if len(cell_mesh):
     cells = wp.array(cell_mesh, dtype=int, device=device)
-    wp.launch(_build_field, dim=len(cell_mesh), inputs=[ms, cells], outputs=[ms.field], device=device)
+    wp.launch(_build_field, dim=len(cell_mesh), inputs=[ms, cells, extremes], outputs=[ms.field], device=device)
     if certify:
       wp.launch(_certify, dim=len(cell_mesh), inputs=[ms, cells], outputs=[ms.field], device=device)
 
 
-def choose_resolutions(ms: MeshSupport, hull_num: np.ndarray, cap: int, device) -> np.ndarray:
+def choose_resolutions(ms: MeshSupport, hull_num: np.ndarray, cap: int, extremes: wp.array, device) -> np.ndarray:
   """Per mesh, one step above the smallest resolution whose lookup is exact on the check set."""
   nmesh = len(hull_num)
   chosen = np.where(hull_num > 0, cap, 0).astype(np.int32)
@@ -267,7 +293,7 @@ def choose_resolutions(ms: MeshSupport, hull_num: np.ndarray, cap: int, device) 
       break
     if not open_.any():
       break
-    _build(ms, np.where(open_, res, 0).astype(np.int32), device)
+    _build(ms, np.where(open_, res, 0).astype(np.int32), extremes, device)
     dirs = _check_directions(res, rng)
     meshes = np.nonzero(open_)[0].astype(np.int32)
     check_mesh = np.repeat(meshes, len(dirs))
@@ -321,8 +347,12 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.nbr_adr = arr(hd.nbr_adr)
   ms.nbr_num = arr(hd.nbr_num)
   ms.nbr = arr(hd.nbr)
-  field_res = choose_resolutions(ms, hd.hull_num, res, device) if adaptive else np.where(hd.hull_num > 0, res, 0)
-  _build(ms, np.asarray(field_res, dtype=np.int32), device, certify=True)
+  extremes = wp.array(extreme_vertices(hd, vert.numpy(), vertadr), dtype=int, device=device)
+  if adaptive:
+    field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)
+  else:
+    field_res = np.where(hd.hull_num > 0, res, 0)
+  _build(ms, np.asarray(field_res, dtype=np.int32), extremes, device, certify=True)
   return ms
 
 

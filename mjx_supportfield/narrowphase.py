@@ -328,8 +328,9 @@ def mpr_narrowphase(
     # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding
     # diameter): MPR's portal face need not be the nearest; the SDFs know the nearest surface
     if needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
-      a.inflate = 0.0
-      fallback = sdf_contact(a, b, ms, sdf, support_mode, 1.0e-4 * scale)
+      bare = a  # the SDFs measure the true surfaces; A keeps its margin band for multi-contact
+      bare.inflate = 0.0
+      fallback = sdf_contact(bare, b, ms, sdf, support_mode, 1.0e-4 * scale)
       if fallback.hit and fallback.depth + band < res.depth:
         res.depth = fallback.depth + band
         res.normal = fallback.normal

@@ -16,6 +16,7 @@ from mujoco_warp._src.types import OverflowType
 
 from mjx_supportfield import broadphase
 from mjx_supportfield import narrowphase
+from mjx_supportfield import warmstart
 from mjx_supportfield.aabb import update_aabbs
 from mjx_supportfield.options import Options
 from mjx_supportfield.sdf import build_mesh_sdf
@@ -51,6 +52,7 @@ class DataState:
   pair_worldid: wp.array
   stock_ctx: CollisionContext
   capacity: int
+  warm: warmstart.WarmCache
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
 
 
@@ -86,6 +88,9 @@ class Collider:
           mpr_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = 1
           self.mpr_types.append((t1, t2))
       self.mpr_pair_type = wp.array(mpr_table, dtype=int)
+      t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
+      nmpr = int(mpr_table[t1 * narrowphase.NGEOMTYPE + t2].sum())
+      self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
       # hull SDFs for the fallback, for the meshes of geoms that meet another shape through MPR
       meshes = set()
       if options.mpr_to_sdf_overlap_ratio > 0 and any(GeomType.MESH in t for t in self.mpr_types):
@@ -154,6 +159,7 @@ class Collider:
           collision_worldid=wp.zeros(d.naconmax, dtype=int),
         ),
         capacity=capacity,
+        warm=warmstart.make_cache(nworld, self.warm_slots if self.options.warm_start else 1),
         pair_outputs=broadphase.PairOutputs(),
       )
     out = st.pair_outputs
@@ -273,6 +279,9 @@ class Collider:
         outputs=self._contact_outputs(d),
       )
     if self.mpr_types:
+      warm = st.warm
+      if self.options.warm_start:
+        wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp])
       wp.launch(
         narrowphase.mpr_narrowphase,
         dim=nthread,
@@ -284,7 +293,8 @@ class Collider:
           SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
           self.options.mpr_refine, self.options.max_contacts_per_pair if self.options.multi_contact else 1,
           self.options.mc_perturbation, self.options.mc_tolerance, self.mesh_sdf,
-          self.options.mpr_to_sdf_overlap_ratio,
+          self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start, warm.stamp, warm.slot_stamp,
+          warm.slot_key, warm.slot_value,
         ] + pair_inputs,
         outputs=self._contact_outputs(d),
       )

@@ -191,15 +191,17 @@ def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float
 
 
 @wp.func
-def mpr_refined(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int, refine: int) -> MprResult:
-  """MPR, then up to ``refine`` reruns along the last normal; the shallowest answer wins.
+def mpr_refined_from(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float, tol: float, iterations: int, refine: int
+) -> MprResult:
+  """MPR from interior point p0, then up to ``refine`` reruns along the last normal; the
+  shallowest answer wins.
 
   MPR answers where the ray from its interior point through the origin leaves A - B: the
-  penetration along the centre-to-centre line, not the smallest one. Restarting from a
-  point just behind the origin (-depth/2 along the normal) sends the ray along the normal;
-  on curved surfaces this walks to the point whose surface normal is the ray, the minimum.
+  penetration along that ray, not the smallest one. Restarting from a point just behind the
+  origin (-depth/2 along the normal) sends the ray along the normal; on curved surfaces this
+  walks to the point whose surface normal is the ray, the minimum.
   """
-  p0 = interior_point(a, b, scale)
   best = mpr(a, b, ms, mode, p0, scale, tol, iterations)
   if best.hit == 0:
     return best
@@ -208,9 +210,7 @@ def mpr_refined(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, to
   for _ in range(refine):
     if best.depth <= 1.0e-6 * scale:
       break
-    q0 = Vertex()
-    q0.v = -0.5 * best.depth * best.normal
-    r = mpr(a, b, ms, mode, q0, scale, tol, iterations)
+    r = mpr(a, b, ms, mode, behind_origin(best.normal, best.depth, scale), scale, tol, iterations)
     if r.hit == 0 or r.depth >= best.depth - tol * scale:
       break
     # the same normal again (a flat face of a polytope, or converged): nothing left to gain
@@ -219,3 +219,17 @@ def mpr_refined(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, to
     if done:
       break
   return best
+
+
+@wp.func
+def behind_origin(normal: wp.vec3, depth: float, scale: float) -> Vertex:
+  """A start point half a penetration depth behind the origin: MPR's ray then runs along ``normal``."""
+  q0 = Vertex()
+  q0.v = -0.5 * wp.max(depth, 1.0e-6 * scale) * normal
+  return q0
+
+
+@wp.func
+def mpr_refined(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int, refine: int) -> MprResult:
+  """Cold MPR: from the centre difference, refined along the normal (see ``mpr_refined_from``)."""
+  return mpr_refined_from(a, b, ms, mode, interior_point(a, b, scale), scale, tol, iterations, refine)

@@ -15,7 +15,11 @@ from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
+from mjx_supportfield import warmstart
+from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.mpr import mpr_refined_from
 from mjx_supportfield.multicontact import Patch
 from mjx_supportfield.multicontact import perturbed_contacts
 from mjx_supportfield.sdf import MeshSdf
@@ -256,6 +260,11 @@ def mpr_narrowphase(
   mc_tolerance: float,
   sdf: MeshSdf,
   sdf_ratio: float,
+  warm_start: int,
+  ws_stamp: wp.array(dtype=int),
+  ws_slot_stamp: wp.array2d(dtype=int),
+  ws_slot_key: wp.array2d(dtype=int),
+  ws_slot_value: wp.array2d(dtype=wp.vec4),
   npair_in: wp.array(dtype=int),
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
@@ -281,8 +290,10 @@ def mpr_narrowphase(
 ):
   """Contacts of convex pairs by MPR on the shapes' support functions: the deepest point, then
   up to max_contacts - 1 more by pose perturbation (not for spheres and ellipsoids, where
-  one point is the whole contact)."""
+  one point is the whole contact). With warm_start, MPR starts from the pair's normal of the
+  previous call and falls back to a cold start when that misses."""
   tid = wp.tid()
+  now = ws_stamp[0]
   for cid in range(tid, npair_in[0], nthread):
     geoms = pair_in[cid]
     g1 = geoms[0]
@@ -320,7 +331,16 @@ def mpr_narrowphase(
     a.inflate = band
     rb = worldid % geom_rbound.shape[0]
     scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
-    res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
+    key = g1 * geom_type.shape[0] + g2
+    res = MprResult()
+    res.hit = 0
+    if warm_start:
+      last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
+      if last[3] > 0.0:
+        q0 = behind_origin(wp.vec3(last[0], last[1], last[2]), last[3], scale)
+        res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
+    if res.hit == 0:
+      res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
     if res.hit == 0:
       continue
     extra = Patch()
@@ -336,6 +356,9 @@ def mpr_narrowphase(
         res.normal = fallback.normal
         res.pos = fallback.pos + 0.5 * band * fallback.normal
         extra.n = -1  # a fallback contact is not perturbed
+    if warm_start:
+      value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+      warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
     frame = make_frame(res.normal)
     one_point = (
       geom_type[g1] == GeomType.SPHERE

@@ -31,6 +31,9 @@ class Options:
       bounding diameter (one shape largely inside the other), the contact comes from the
       shapes' signed-distance fields if they find a shallower one; 0 turns the fallback off.
     sdf_res: cells along the longest side of a mesh hull's baked SDF.
+    warm_start: MPR starts from each pair's contact normal of the previous collision call
+      (kept per world and geom pair, dropped once the pair finds no contact); a warm start
+      that finds no contact is retried cold.
   """
 
   support_res: int = 180
@@ -46,6 +49,7 @@ class Options:
   mc_tolerance: float = 1e-2
   mpr_to_sdf_overlap_ratio: float = 0.5
   sdf_res: int = 32
+  warm_start: bool = True
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)
@@ -56,8 +60,9 @@ class Options:
     _check_float("mpr_tolerance", self.mpr_tolerance, 1e-12, 1e-2)
     _check_int("mpr_refine", self.mpr_refine, 0, 32)
     _check_int("sap_axis", self.sap_axis, 0, 2)
-    if not isinstance(self.multi_contact, bool):
-      raise ValueError(f"Options.multi_contact: expected True or False, got {self.multi_contact!r}")
+    for name in ("multi_contact", "warm_start"):
+      if not isinstance(getattr(self, name), bool):
+        raise ValueError(f"Options.{name}: expected True or False, got {getattr(self, name)!r}")
     _check_int("max_contacts_per_pair", self.max_contacts_per_pair, 1, 5)
     _check_float("mc_perturbation", self.mc_perturbation, 1e-5, 0.2)
     _check_float("mc_tolerance", self.mc_tolerance, 0.0, 0.5)

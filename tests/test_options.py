@@ -37,6 +37,8 @@ INVALID = [
   ("support_res", 180.0),
   ("support_res", "180"),
   ("support_res", True),
+  ("warm_start", 1),
+  ("multi_contact", "yes"),
   ("support_res", None),
   ("support_mode", "fast"),
   ("support_mode", "Refined"),

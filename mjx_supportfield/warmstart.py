@@ -1,0 +1,102 @@
+"""Warm start of MPR: last step's contact normal and depth of each (world, geom pair).
+
+A per-world open-addressing hash table keyed by the geom pair. Entries carry the collision
+call (``stamp``) that wrote them, so nothing is ever cleared: an entry counts only when it was
+written by the previous call, which drops a pair that left the broad phase or found no contact.
+
+Within one call, lookups and inserts run concurrently. An insert may claim only a slot whose
+stamp is two or more calls old; a lookup walks past slots of the last two calls and of this
+one and stops at an older (or never used) slot, which cannot lie before the entry it looks for.
+A full table only means a cold start for the pairs that found no slot.
+"""
+
+import dataclasses
+
+import numpy as np
+import warp as wp
+
+NEVER = -(1 << 30)  # stamp of a slot never written
+MAX_SLOTS = 1024  # per world: bounds the memory at nworld x 1024 x 24 bytes
+_FIBONACCI = wp.constant(wp.uint32(2654435769))  # 2^32 / golden ratio
+
+
+@dataclasses.dataclass
+class WarmCache:
+  """Device arrays of the cache of one Data."""
+
+  stamp: wp.array  # (1,) the current collision call
+  slot_stamp: wp.array2d  # (nworld, nslot)
+  slot_key: wp.array2d
+  slot_value: wp.array2d  # vec4: normal, depth
+
+
+def slots_per_world(npair: int) -> int:
+  """Hash slots per world for at most ``npair`` warm-started pairs: a power of two >= 2 x npair."""
+  return int(min(MAX_SLOTS, max(8, 1 << int(np.ceil(np.log2(max(2 * npair, 1)))))))
+
+
+def make_cache(nworld: int, nslot: int) -> WarmCache:
+  """An empty cache (every slot never written) on the current device."""
+  return WarmCache(
+    stamp=wp.zeros(1, dtype=int),
+    slot_stamp=wp.full((nworld, nslot), NEVER, dtype=int),
+    slot_key=wp.zeros((nworld, nslot), dtype=int),
+    slot_value=wp.zeros((nworld, nslot), dtype=wp.vec4),
+  )
+
+
+@wp.kernel(enable_backward=False)
+def advance(stamp: wp.array(dtype=int)):
+  """Starts a new collision call (a kernel, so it runs inside a captured graph)."""
+  stamp[0] = stamp[0] + 1
+
+
+@wp.func
+def _home(key: int, nslot: int) -> int:
+  # Fibonacci hashing spreads consecutive geom-pair keys over the table
+  return int((wp.uint32(key) * _FIBONACCI) >> wp.uint32(8)) & (nslot - 1)
+
+
+@wp.func
+def lookup(
+  slot_stamp: wp.array2d(dtype=int),
+  slot_key: wp.array2d(dtype=int),
+  slot_value: wp.array2d(dtype=wp.vec4),
+  now: int,
+  worldid: int,
+  key: int,
+) -> wp.vec4:
+  """The previous call's (normal, depth) of ``key``; depth 0 when there is none."""
+  nslot = slot_key.shape[1]
+  s = _home(key, nslot)
+  for _ in range(nslot):
+    t = slot_stamp[worldid, s]
+    if t < now - 2:
+      break
+    if t == now - 1 and slot_key[worldid, s] == key:
+      return slot_value[worldid, s]
+    s = (s + 1) & (nslot - 1)
+  return wp.vec4(0.0)
+
+
+@wp.func
+def insert(
+  slot_stamp: wp.array2d(dtype=int),
+  slot_key: wp.array2d(dtype=int),
+  slot_value: wp.array2d(dtype=wp.vec4),
+  now: int,
+  worldid: int,
+  key: int,
+  value: wp.vec4,
+):
+  """Stores this call's (normal, depth) of ``key``; silently skipped when the table is full."""
+  nslot = slot_key.shape[1]
+  s = _home(key, nslot)
+  for _ in range(nslot):
+    t = slot_stamp[worldid, s]
+    if t <= now - 2:  # free: never written, or older than the previous call
+      if wp.atomic_cas(slot_stamp, worldid, s, t, now) == t:
+        slot_key[worldid, s] = key
+        slot_value[worldid, s] = value
+        return
+    s = (s + 1) & (nslot - 1)

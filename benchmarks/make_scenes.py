@@ -5,6 +5,7 @@
 pile_<n>_<p>.xml : n random convex meshes (p points each, on random ellipsoids) dropped in a
                    loose lattice onto a plane; they settle into a pile.
 primitives_<n>.xml: n mixed primitives (sphere, capsule, box, cylinder, ellipsoid) likewise.
+terrain_<n>.xml  : n mixed primitives and convex meshes dropped on a bumpy 64 x 64 heightfield.
 """
 
 import os
@@ -60,9 +61,36 @@ def primitives(n: int, seed: int = 0) -> str:
   return HEADER.format(name=f"primitives_{n}") + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
 
 
+def terrain(n: int, seed: int = 0) -> str:
+  rng = np.random.default_rng(seed)
+  nrow = ncol = 64
+  x = np.linspace(0, 4 * np.pi, ncol)
+  bumps = 0.5 + 0.25 * np.sin(x)[None, :] * np.cos(0.7 * x)[:, None] + 0.25 * rng.uniform(size=(nrow, ncol))
+  elevation = " ".join(f"{v:.3f}" for v in bumps.ravel())
+  meshes = "".join(
+    f'    <mesh name="m{k}" vertex="{" ".join(f"{v:.5f}" for v in ellipsoid_points(rng, 64).ravel())}"/>\n'
+    for k in range(n // 6 + 1)
+  )
+  kinds = ["sphere", "capsule", "box", "cylinder", "ellipsoid", "mesh"]
+  bodies = []
+  for k, (x0, y0, z0) in enumerate(_lattice(n, 0.15, 0.25)):
+    kind = kinds[k % len(kinds)]
+    s = rng.uniform(0.02, 0.04, size=3)
+    attrs = {"sphere": f'size="{s[0]:.3f}"', "capsule": f'size="{s[0]:.3f} {s[1]:.3f}"',
+             "box": f'size="{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"', "cylinder": f'size="{s[0]:.3f} {s[1]:.3f}"',
+             "ellipsoid": f'size="{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"', "mesh": f'mesh="m{k // 6}"'}[kind]
+    bodies.append(f'    <body name="b{k}" pos="{x0:.3f} {y0:.3f} {z0:.3f}"><freejoint/>'
+                  f'<geom name="g{k}" type="{kind}" {attrs}/></body>\n')
+  return (HEADER.format(name=f"terrain_{n}") + f'  <asset>\n    <hfield name="bumps" nrow="{nrow}" ncol="{ncol}" '
+          f'size="1.5 1.5 0.1 0.05" elevation="{elevation}"/>\n{meshes}  </asset>\n  <worldbody>\n'
+          '    <geom name="terrain" type="hfield" hfield="bumps"/>\n    <light pos="0 0 3" dir="0 0 -1"/>\n'
+          f"{''.join(bodies)}  </worldbody>\n</mujoco>\n")
+
+
 def main():
   os.makedirs(HERE, exist_ok=True)
-  scenes = {"pile_32_128.xml": pile(32, 128), "primitives_32.xml": primitives(32)}
+  scenes = {"pile_32_128.xml": pile(32, 128), "pile_256_128.xml": pile(256, 128), "pile_1024_128.xml": pile(1024, 128),
+            "pile_32_1024.xml": pile(32, 1024), "primitives_32.xml": primitives(32), "terrain_32.xml": terrain(32)}
   for fname, xml in scenes.items():
     with open(os.path.join(HERE, fname), "w") as f:
       f.write(xml)

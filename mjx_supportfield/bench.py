@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import os
 import platform
 import sys
 import time
@@ -75,14 +76,18 @@ def _time_graph(fn, launches: int) -> float:
   return (time.perf_counter() - t) / launches * 1e3
 
 
+def scene_name(path: str) -> str:
+  """A scene's name: its file name, or its folder's for MuJoCo Warp's ``.../aloha_pot/scene.xml``."""
+  scene = os.path.basename(path).removesuffix(".xml")
+  return os.path.basename(os.path.dirname(path)) if scene == "scene" else scene
+
+
 def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int, nconmax: Optional[int],
                 options: Optional[Options], progress: Optional[Progress] = None) -> list[Row]:
   """Times both implementations on one scene for each nworld."""
   mjm = mujoco.MjModel.from_xml_path(path)
   mjd = settled_state(mjm, settle_steps)
-  scene = path.rsplit("/", 1)[-1].removesuffix(".xml")
-  if scene == "scene":
-    scene = path.rsplit("/", 2)[-2]
+  scene = scene_name(path)
   # room for what MuJoCo C finds at the settled state, with headroom for both implementations
   ncon = nconmax or int(1.5 * mjd.ncon) + 16
   njmax = 6 * ncon + mjd.nefc
@@ -126,13 +131,14 @@ def device_name() -> str:
   return device.name if device.is_cuda else (platform.processor() or "cpu")
 
 
-def write_json(rows: list[Row], path: str) -> None:
-  """Writes {"gpu", "versions", "rows"} as specified by the benchmark issue."""
+def write_json(rows: list[Row], path: str, extra: Optional[dict] = None) -> None:
+  """Writes {"gpu", "versions", "rows"} as specified by the benchmark issue (plus ``extra`` keys)."""
   import importlib.metadata as md
 
   versions = {p: md.version(p) for p in ("mujoco", "mujoco-warp", "warp-lang")}
+  out = {"gpu": device_name(), "versions": versions, "rows": [dataclasses.asdict(r) for r in rows]}
   with open(path, "w") as f:
-    json.dump({"gpu": device_name(), "versions": versions, "rows": [dataclasses.asdict(r) for r in rows]}, f, indent=1)
+    json.dump({**out, **(extra or {})}, f, indent=1)
 
 
 def plot(rows: list[dict], path: str) -> None:

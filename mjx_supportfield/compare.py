@@ -64,6 +64,7 @@ def warp_contacts(mjm: mujoco.MjModel, states: list[np.ndarray], nworld: int, pl
   mjw.kinematics(m, d)
   if plugin is not None:
     plugin_collision(m, d)
+    plugin_collision(m, d)  # the second call is warm-started from the first, as in a rollout
   else:
     mjw.collision(m, d)
   wp.synchronize()
@@ -93,16 +94,33 @@ def _angle_deg(a, b) -> float:
   return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
-def match(reference: list[Contact], other: list[Contact], min_depth: float) -> dict:
-  """Per-pair comparison of one state; pairs keyed by sorted geom ids."""
+def _count_by_pair(contacts: list[Contact]) -> dict:
+  counts = {}
+  for c in contacts:
+    key = tuple(sorted(c.geom))
+    counts[key] = counts.get(key, 0) + 1
+  return counts
+
+
+def match(reference: list[Contact], other: list[Contact], min_depth: float, geom_size: np.ndarray) -> dict:
+  """Per-pair comparison of one state; pairs keyed by sorted geom ids.
+
+  geom_size: a length per geom (its bounding diameter; 0 for planes and heightfields); the
+  relative depth error divides by the smaller size of the pair's geoms that have one.
+  """
   ref, oth = _deepest_by_pair(reference), _deepest_by_pair(other)
+  nref, noth = _count_by_pair(reference), _count_by_pair(other)
   deep = {k for k, c in ref.items() if -c.dist >= min_depth}
   rows = []
   for key in sorted(set(ref) & set(oth)):
     r, o = ref[key], oth[key]
+    sizes = [geom_size[g] for g in key if geom_size[g] > 0]
     rows.append({
       "pair": key,
+      "contacts_reference": nref[key],
+      "contacts": noth[key],
       "depth_error": abs(o.dist - r.dist),
+      "depth_error_rel": abs(o.dist - r.dist) / min(sizes) if sizes else 0.0,
       "normal_angle_deg": _angle_deg(r.normal, o.normal),
       "position_error": float(np.linalg.norm(o.pos - r.pos)),
     })
@@ -135,7 +153,11 @@ def _summary(per_state: list[dict]) -> dict:
     "extra": sum(len(s["extra"]) for s in per_state),
     "contacts_reference": sum(s["contacts_reference"] for s in per_state),
     "contacts": sum(s["contacts"] for s in per_state),
+    "pairs_same_contact_count": sum(1 for r in rows if r["contacts"] == r["contacts_reference"]),
+    "mean_contact_count_difference": float(np.mean([abs(r["contacts"] - r["contacts_reference"]) for r in rows]))
+    if rows else 0.0,
     "median_depth_error": stat("depth_error", np.median),
+    "median_depth_error_rel": stat("depth_error_rel", np.median),
     "max_depth_error": stat("depth_error", np.max),
     "median_normal_angle_deg": stat("normal_angle_deg", np.median),
     "pairs_normal_angle_over_5deg": sum(1 for r in rows if r["normal_angle_deg"] > 5.0),
@@ -155,11 +177,13 @@ def compare(
   nworld = nworld or len(states)
   reference = [mujoco_contacts(mjm, q) for q in states]
   names = [mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, i) or f"geom{i}" for i in range(mjm.ngeom)]
+  unbounded = np.isin(mjm.geom_type, [mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_HFIELD])
+  geom_size = np.where(unbounded, 0.0, 2.0 * mjm.geom_rbound)
   report = {"model": path, "steps": steps, "states": len(states), "nworld": nworld, "min_depth": min_depth,
             "device": str(wp.get_device()), "impls": {}}
   for impl, opts in (("plugin", options or Options()), ("stock", None)):
     worlds = warp_contacts(mjm, states, nworld, opts)
-    per_state = [match(reference[w % len(states)], worlds[w], min_depth) for w in range(nworld)]
+    per_state = [match(reference[w % len(states)], worlds[w], min_depth, geom_size) for w in range(nworld)]
     for s in per_state:
       for key in ("missed", "missed_deep", "extra"):
         s[key] = [f"{names[a]}-{names[b]}" for a, b in s[key]]
@@ -180,7 +204,10 @@ def format_report(report: dict) -> str:
     ("extra", "extra pairs", "d"),
     ("contacts_reference", "contacts (MuJoCo C)", "d"),
     ("contacts", "contacts", "d"),
+    ("pairs_same_contact_count", "pairs with MuJoCo's contact count", "d"),
+    ("mean_contact_count_difference", "mean |contact count difference|", ".2f"),
     ("median_depth_error", "median depth error [m]", ".2e"),
+    ("median_depth_error_rel", "  relative to the smaller geom", ".2e"),
     ("max_depth_error", "max depth error [m]", ".2e"),
     ("median_normal_angle_deg", "median normal angle [deg]", ".3f"),
     ("max_normal_angle_deg", "max normal angle [deg]", ".3f"),

@@ -1,0 +1,111 @@
+"""The whole benchmark suite on the GPU: every scene, plugin vs stock MuJoCo Warp in one process.
+
+  python benchmarks/run_suite.py [--only SCENE ...] [--launches N] [--out benchmarks/results]
+
+Writes <out>/<date>-<gpu>.json (the bench rows of every scene, install times and the
+broad-phase scaling) and <out>/<date>-<gpu>.png. Missing generated scenes are written first
+(make_scenes.py).
+"""
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import time
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import warp as wp
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
+
+import make_scenes  # noqa: E402
+
+from mjx_supportfield import bench  # noqa: E402
+from mjx_supportfield.install import get_collider  # noqa: E402
+from mjx_supportfield.install import install  # noqa: E402
+from mjx_supportfield.options import Options  # noqa: E402
+
+MJW_DATA = os.path.join(os.path.dirname(mjw.__file__), "test_data")
+SCENES = {  # name: (path, nworlds)
+  "aloha_pot": (os.path.join(MJW_DATA, "aloha_pot", "scene.xml"), [1024, 4096, 8192]),
+  "pile_32_128": (os.path.join(HERE, "scenes", "pile_32_128.xml"), [1024, 4096, 8192]),
+  "pile_32_1024": (os.path.join(HERE, "scenes", "pile_32_1024.xml"), [1024, 8192]),
+  "pile_256_128": (os.path.join(HERE, "scenes", "pile_256_128.xml"), [1024, 4096]),
+  "pile_1024_128": (os.path.join(HERE, "scenes", "pile_1024_128.xml"), [256, 1024]),
+  "primitives_32": (os.path.join(HERE, "scenes", "primitives_32.xml"), [1024, 8192]),
+  "humanoid": (os.path.join(MJW_DATA, "humanoid", "humanoid.xml"), [1024, 8192]),
+  "terrain_32": (os.path.join(HERE, "scenes", "terrain_32.xml"), [1024, 8192]),
+}
+BROADPHASE_SCENES = ("pile_32_128", "pile_256_128", "pile_1024_128")
+
+
+def install_seconds(path: str) -> dict:
+  """Seconds of ``install`` on a fresh model: first in this process, then again (kernels and SDFs cached)."""
+  mjm = mujoco.MjModel.from_xml_path(path)
+  out = {}
+  for label in ("first", "again"):
+    m = mjw.put_model(mjm)
+    wp.synchronize()
+    t = time.perf_counter()
+    install(mjm, m, Options())
+    wp.synchronize()
+    out[label] = time.perf_counter() - t
+  return out
+
+
+def broadphase_ms(path: str, nworld: int, launches: int) -> dict:
+  """Graph-captured time of the plugin's AABB + sweep-and-prune alone, at the settled state."""
+  mjm = mujoco.MjModel.from_xml_path(path)
+  mjd = bench.settled_state(mjm, 200)
+  m = mjw.put_model(mjm)
+  install(mjm, m, Options())
+  d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=int(1.5 * mjd.ncon) + 16, njmax=6 * mjd.ncon + 64)
+  mjw.forward(m, d)
+  collider = get_collider(m)
+  st = collider.state(m, d)
+  ms = bench._time_graph(lambda: collider._broadphase(m, d, st, None), launches)
+  return {"ngeom": mjm.ngeom, "nworld": nworld, "ms": ms, "pairs_per_world": int(st.npair.numpy()[0]) / nworld}
+
+
+def main(argv=None):
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("--only", nargs="*", choices=sorted(SCENES), help="scenes to run (default: all)")
+  p.add_argument("--nworld", type=int, nargs="*", help="override every scene's nworld list")
+  p.add_argument("--launches", type=int, default=100)
+  p.add_argument("--out", default=os.path.join(HERE, "results"))
+  args = p.parse_args(argv)
+  wp.config.log_level = wp.LOG_WARNING
+  names = args.only or list(SCENES)
+  if any(not os.path.exists(SCENES[n][0]) for n in names):
+    make_scenes.main()
+
+  plan = {n: (SCENES[n][0], args.nworld or SCENES[n][1]) for n in names}
+  progress = bench.Progress(sum(2 * len(nw) for _, nw in plan.values()))
+  rows, installs, scaling = [], {}, []
+  for name, (path, nworlds) in plan.items():
+    installs[name] = install_seconds(path)
+    rows += bench.bench_scene(path, nworlds, args.launches, 200, None, Options(), progress)
+    if name in BROADPHASE_SCENES:
+      scaling.append(broadphase_ms(path, nworlds[0], args.launches))
+    print(f"\n{bench.format_table([r for r in rows if r.scene == bench.scene_name(path)])}", flush=True)
+
+  gpu = bench.device_name()
+  stem = os.path.join(args.out, f"{datetime.date.today()}-{gpu.split()[-1].lower()}")
+  bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling})
+  try:
+    bench.plot([r.__dict__ for r in rows], stem + ".png")
+  except ImportError:
+    print("matplotlib missing: no plot")
+  print(bench.format_table(rows))
+  print("install [s]:", json.dumps(installs))
+  print("broad phase:", json.dumps(scaling))
+  print("wrote", stem + ".json")
+
+
+if __name__ == "__main__":
+  main()

@@ -15,6 +15,7 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
 from mjx_supportfield import broadphase
+from mjx_supportfield import heightfield
 from mjx_supportfield import narrowphase
 from mjx_supportfield import warmstart
 from mjx_supportfield.aabb import update_aabbs
@@ -56,10 +57,25 @@ class DataState:
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
 
 
+def _check_heightfields(mjm: mujoco.MjModel) -> None:
+  """Heightfields need a grid of at least 2 x 2 samples and positive sizes (the cell size divides)."""
+  for g in np.nonzero(np.asarray(mjm.geom_type) == GeomType.HFIELD)[0]:
+    hf = int(mjm.geom_dataid[g])
+    nrow, ncol, size = int(mjm.hfield_nrow[hf]), int(mjm.hfield_ncol[hf]), np.asarray(mjm.hfield_size[hf])
+    name = mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, int(g)) or f"geom {g}"
+    if nrow < 2 or ncol < 2:
+      raise ValueError(f"install: geom '{name}': heightfield {hf} has {nrow} rows and {ncol} columns; at least 2 of each"
+                       " are needed")
+    if not (np.all(np.isfinite(size)) and size[0] > 0 and size[1] > 0 and size[2] >= 0 and size[3] >= 0):
+      raise ValueError(f"install: geom '{name}': heightfield {hf} has size {size.tolist()}; x and y radii must be"
+                       " positive, elevation and base non-negative")
+
+
 class Collider:
   """Everything the plugin built for one MuJoCo Warp model (see ``install``)."""
 
   def __init__(self, mjm: mujoco.MjModel, m, options: Options):
+    _check_heightfields(mjm)
     self.options = options
     self.ngeom, self.nq, self.nbody = mjm.ngeom, mjm.nq, mjm.nbody
     device = m.geom_type.device
@@ -88,6 +104,7 @@ class Collider:
           mpr_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = 1
           self.mpr_types.append((t1, t2))
       self.mpr_pair_type = wp.array(mpr_table, dtype=int)
+      self.has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       nmpr = int(mpr_table[t1 * narrowphase.NGEOMTYPE + t2].sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
@@ -298,8 +315,24 @@ class Collider:
         ] + pair_inputs,
         outputs=self._contact_outputs(d),
       )
+    if self.has_hfield_pairs:
+      wp.launch(
+        heightfield.hfield_narrowphase,
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.hfield_size,
+          m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data, m.pair_dim, m.pair_solref, m.pair_solreffriction,
+          m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction,
+          int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD))), d.geom_xpos, d.geom_xmat, d.naconmax,
+          self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance,
+          self.options.mpr_iterations, self.options.mpr_refine, self.options.max_contacts_per_pair,
+          self.options.mc_tolerance,
+        ] + pair_inputs,
+        outputs=[d.overflow] + self._contact_outputs(d),
+      )
     if self.has_stock_pairs:
-      # heightfields, SDF geoms and collision-sensor pairs: MuJoCo Warp's own narrow phase
+      # SDF geoms and collision-sensor pairs: MuJoCo Warp's own narrow phase
       collision_driver._narrowphase(m, d, st.stock_ctx)
 
   # --- diagnostics --------------------------------------------------------------------

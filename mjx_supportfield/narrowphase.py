@@ -195,7 +195,7 @@ def analytic_kernel(pair_types: tuple):
 
 
 @wp.func
-def _shape(
+def posed_shape(
   geom_type: wp.array(dtype=int),
   geom_dataid: wp.array2d(dtype=int),
   geom_size: wp.array2d(dtype=wp.vec3),
@@ -205,6 +205,7 @@ def _shape(
   geomid: int,
   worldid: int,
 ) -> Shape:
+  """Geom ``geomid`` of world ``worldid`` as a Shape (world frame, no inflation)."""
   s = Shape()
   s.gtype = geom_type[geomid]
   s.pos = geom_xpos_in[worldid, geomid]
@@ -324,8 +325,8 @@ def mpr_narrowphase(
       cid,
       worldid,
     )
-    a = _shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
-    b = _shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
+    a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
+    b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
     # contacts are wanted up to margin + gap apart: grow A by that band, shrink the answer back
     band = wp.max(margin + gap, 0.0)
     a.inflate = band

@@ -147,10 +147,31 @@ def support_local(gtype: int, size: wp.vec3, mesh: int, ms: MeshSupport, d: wp.v
 
 
 @wp.func
+def prism_support(top: wp.mat33, bottom: float, d: wp.vec3) -> wp.vec3:
+  """Support point of a vertical triangular prism: top vertices in the rows of ``top``, base at
+  z = bottom (a heightfield cell's half, see heightfield.py)."""
+  best = int(0)
+  best_dot = float(-1.0e30)
+  for i in range(3):
+    s = top[i, 0] * d[0] + top[i, 1] * d[1] + wp.where(d[2] > 0.0, top[i, 2], bottom) * d[2]
+    if s > best_dot:
+      best = i
+      best_dot = s
+  return wp.vec3(top[best, 0], top[best, 1], wp.where(d[2] > 0.0, top[best, 2], bottom))
+
+
+@wp.func
 def support_world(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> wp.vec3:
-  """Support point of a posed shape (inflated by s.inflate) for world direction d."""
-  local = support_local(s.gtype, s.size, s.mesh, ms, wp.transpose(s.rot) @ d, mode)
-  p = s.pos + s.rot @ local
+  """Support point of a posed shape (inflated by s.inflate) for world direction d.
+
+  A HFIELD shape is one prism of a heightfield in the query's frame: top vertices in the
+  rows of ``rot``, base height in ``size[0]``, ``pos`` zero.
+  """
+  p = wp.vec3(0.0)
+  if s.gtype == GeomType.HFIELD:
+    p = prism_support(s.rot, s.size[0], d)
+  else:
+    p = s.pos + s.rot @ support_local(s.gtype, s.size, s.mesh, ms, wp.transpose(s.rot) @ d, mode)
   if s.inflate > 0.0:
     p = p + s.inflate * wp.normalize(d)
   return p

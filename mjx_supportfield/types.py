@@ -9,10 +9,10 @@ SUPPORT_REFINED = 1
 SUPPORT_EXACT = 2
 SUPPORT_MODE_ID = {"field": SUPPORT_FIELD, "refined": SUPPORT_REFINED, "exact": SUPPORT_EXACT}
 
-# geom types the plugin's own narrow phase handles (everything convex but hfield / sdf / flex)
+# convex geom types: the plugin's own narrow phase (MPR or analytic), also against heightfields
 CONVEX_TYPES = (GeomType.SPHERE, GeomType.CAPSULE, GeomType.ELLIPSOID, GeomType.CYLINDER, GeomType.BOX, GeomType.MESH)
 # geom types whose pairs go to stock MuJoCo Warp
-STOCK_TYPES = (GeomType.HFIELD, GeomType.SDF)
+STOCK_TYPES = (GeomType.SDF,)
 
 
 @wp.struct

@@ -1,0 +1,501 @@
+"""Heightfield terrain against convex geoms.
+
+MuJoCo's heightfield: ``nrow x ncol`` elevations (scaled to [0, 1]) times ``size[2]`` over the
+rectangle ``[-size[0], size[0]] x [-size[1], size[1]]`` of the geom's frame (columns along x,
+rows along y), solid down to ``-size[3]``. Each grid cell is split into two triangles along
+the diagonal from (row, col) to (row + 1, col + 1), as MuJoCo does.
+
+The cells under the geom's extent (support queries in the terrain frame) are visited, and
+each gives contact candidates by two passes:
+- the plane pass (geom points in terrain faces): the geom's points below a triangle's plane
+  whose projection lies in the triangle: its deepest point, and a box's corners, a mesh's
+  hull vertices, a capsule's two ends. On flat terrain this gives the contacts of a plane;
+- the point pass (terrain features in the geom): peaks (grid vertices above the mean of
+  their neighbours), and the point of each ridge edge (a convex fold of the surface) nearest
+  the geom's centre, that lie inside the geom; MPR of that point against the geom gives
+  depth and normal (the geom's surface normal). Normals of a face the point belongs to are
+  left to the plane pass. This catches ridges and peaks poking into a geom, which no
+  triangle's plane sees; flat and concave places need no point pass.
+MuJoCo instead runs a convex collision per triangular prism (triangle and base); a prism's
+side walls lie inside the terrain, and an exact penetration solver pushes geoms out through
+them, so this plugin does not use prisms.
+
+Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
+points farthest from those already chosen are written, up to ``max_contacts``. A geom over
+more than MAX_CELLS cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD``
+(with a printed warning unless ``m.opt.warn_overflow`` clears it).
+"""
+
+import warp as wp
+from mujoco_warp._src.collision_core import contact_params
+from mujoco_warp._src.collision_core import write_contact
+from mujoco_warp._src.math import make_frame
+from mujoco_warp._src.types import GeomType
+from mujoco_warp._src.types import OverflowType
+from mujoco_warp._src.types import vec5
+
+from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.narrowphase import posed_shape
+from mjx_supportfield.support import hull_point
+from mjx_supportfield.support import support_world
+from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import Shape
+
+NCANDIDATE = 16  # contact candidates kept per pair before the final choice
+MAX_CELLS = 4096  # cells visited per pair (a 64 x 64 window)
+MAX_CONTACTS = 8  # most contacts written per pair (Options.max_contacts_per_pair bounds it too)
+
+mat_cand = wp.types.matrix(shape=(NCANDIDATE, 3), dtype=float)
+vec_cand = wp.types.vector(length=NCANDIDATE, dtype=float)
+vec_chosen = wp.types.vector(length=MAX_CONTACTS, dtype=int)
+
+
+@wp.struct
+class Candidates:
+  """Contact candidates of one pair in the terrain frame (depth includes the margin band)."""
+
+  n: int
+  pos: mat_cand
+  normal: mat_cand
+  depth: vec_cand
+  cut: int  # 1 when the geom covered more than MAX_CELLS cells
+
+
+@wp.func
+def _row(m: mat_cand, k: int) -> wp.vec3:
+  return wp.vec3(m[k, 0], m[k, 1], m[k, 2])
+
+
+@wp.func
+def _put(c: Candidates, k: int, pos: wp.vec3, normal: wp.vec3, depth: float) -> Candidates:
+  out = c
+  for i in range(3):
+    out.pos[k, i] = pos[i]
+    out.normal[k, i] = normal[i]
+  out.depth[k] = depth
+  return out
+
+
+@wp.func
+def add_candidate(c: Candidates, pos: wp.vec3, normal: wp.vec3, depth: float, spacing: float) -> Candidates:
+  """Adds a candidate: one within ``spacing`` of it keeps the deeper of the two; a full list
+  gives up its shallowest for a deeper one."""
+  for k in range(c.n):
+    if wp.length(_row(c.pos, k) - pos) < spacing:
+      if depth > c.depth[k]:
+        return _put(c, k, pos, normal, depth)
+      return c
+  if c.n < NCANDIDATE:
+    out = _put(c, c.n, pos, normal, depth)
+    out.n = c.n + 1
+    return out
+  shallowest = int(0)
+  for k in range(NCANDIDATE):
+    if c.depth[k] < c.depth[shallowest]:
+      shallowest = k
+  if depth > c.depth[shallowest]:
+    return _put(c, shallowest, pos, normal, depth)
+  return c
+
+
+@wp.func
+def _in_triangle_xy(p: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3) -> bool:
+  """Whether p's projection along z falls in the triangle's (edges included)."""
+  e1 = wp.vec2(v1[0] - v0[0], v1[1] - v0[1])
+  e2 = wp.vec2(v2[0] - v0[0], v2[1] - v0[1])
+  r = wp.vec2(p[0] - v0[0], p[1] - v0[1])
+  det = e1[0] * e2[1] - e1[1] * e2[0]
+  a = (r[0] * e2[1] - r[1] * e2[0]) / det
+  b = (e1[0] * r[1] - e1[1] * r[0]) / det
+  eps = 1.0e-6
+  return a >= -eps and b >= -eps and a + b <= 1.0 + eps
+
+
+@wp.func
+def _plane_point(c: Candidates, p: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, n: wp.vec3, band: float,
+                 spacing: float) -> Candidates:
+  """A geom point p below the triangle's plane (within band) and over the triangle."""
+  depth = wp.dot(n, v0 - p) + band
+  if depth <= 0.0 or not _in_triangle_xy(p, v0, v1, v2):
+    return c
+  return add_candidate(c, p + 0.5 * depth * n, n, depth, spacing)
+
+
+@wp.func
+def plane_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3,
+               n: wp.vec3, band: float, spacing: float) -> Candidates:
+  """Candidates of geom B against the triangle's plane, kept where they lie over the triangle."""
+  out = _plane_point(c, support_world(b, ms, -n, mode), v0, v1, v2, n, band, spacing)
+  if b.gtype == GeomType.BOX:
+    for k in range(8):
+      corner = wp.vec3(wp.where((k & 1) != 0, 1.0, -1.0) * b.size[0], wp.where((k & 2) != 0, 1.0, -1.0) * b.size[1],
+                       wp.where((k & 4) != 0, 1.0, -1.0) * b.size[2])
+      out = _plane_point(out, b.pos + b.rot @ corner, v0, v1, v2, n, band, spacing)
+  elif b.gtype == GeomType.MESH:
+    for k in range(ms.hull_num[b.mesh]):
+      out = _plane_point(out, b.pos + b.rot @ hull_point(ms, b.mesh, k), v0, v1, v2, n, band, spacing)
+  elif b.gtype == GeomType.CAPSULE:
+    axis = wp.vec3(b.rot[0, 2], b.rot[1, 2], b.rot[2, 2])
+    for k in range(2):
+      end = b.pos + wp.where(k == 0, 1.0, -1.0) * b.size[1] * axis
+      out = _plane_point(out, end - b.size[0] * n, v0, v1, v2, n, band, spacing)
+  return out
+
+
+@wp.func
+def _prism_shape(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, bottom: float, band: float) -> Shape:
+  """The prism under triangle (v0, v1, v2) down to z = bottom, as a Shape (see support_world)."""
+  s = Shape()
+  s.gtype = GeomType.HFIELD
+  s.pos = wp.vec3(0.0)
+  s.rot = wp.mat33(v0[0], v0[1], v0[2], v1[0], v1[1], v1[2], v2[0], v2[1], v2[2])
+  s.size = wp.vec3(bottom, 0.0, 0.0)
+  s.mesh = -1
+  top = (v0 + v1 + v2) / 3.0
+  s.center = wp.vec3(top[0], top[1], 0.5 * (top[2] + bottom))
+  s.inflate = band
+  return s
+
+
+@wp.func
+def prism_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3,
+               n: wp.vec3, bottom: float, band: float, spacing: float, scale: float, tol: float, iterations: int,
+               refine: int) -> Candidates:
+  """MPR of the triangle's prism against B (an edge of B dipping into the face), kept when the
+  prism's witness point lies on the top triangle (answers through the prism's side walls, which
+  are inside the terrain, are dropped) and no plane-pass candidate with its normal is as deep."""
+  res = mpr_refined(_prism_shape(v0, v1, v2, bottom, band), b, ms, mode, scale, tol, iterations, refine)
+  if res.hit == 0 or wp.dot(res.normal, n) < 0.5:
+    return c
+  for k in range(c.n):
+    if wp.dot(_row(c.normal, k), res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
+      return c
+  witness = res.pos + 0.5 * res.depth * res.normal
+  if wp.dot(n, witness - v0) < -1.0e-6 * scale:
+    return c
+  return add_candidate(c, res.pos, res.normal, res.depth, spacing)
+
+
+@wp.func
+def _point_shape(q: wp.vec3, band: float) -> Shape:
+  """A terrain point as a Shape (a sphere of radius 0 grown by the margin band)."""
+  s = Shape()
+  s.gtype = GeomType.SPHERE
+  s.pos = q
+  s.rot = wp.identity(n=3, dtype=float)
+  s.size = wp.vec3(0.0)
+  s.mesh = -1
+  s.center = q
+  s.inflate = band
+  return s
+
+
+@wp.func
+def _closest_on_segment(p0: wp.vec3, p1: wp.vec3, x: wp.vec3) -> wp.vec3:
+  e = p1 - p0
+  t = wp.clamp(wp.dot(x - p0, e) / wp.max(wp.dot(e, e), 1.0e-30), 0.0, 1.0)
+  return p0 + t * e
+
+
+@wp.func
+def point_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, q: wp.vec3, lo: wp.vec3, hi: wp.vec3,
+               na: wp.vec3, nb: wp.vec3, band: float, spacing: float, scale: float, tol: float, iterations: int,
+               refine: int) -> Candidates:
+  """A point of the terrain's surface inside B: a contact with B's surface normal (which must
+  point away from the terrain)."""
+  if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
+    return c
+  res = mpr_refined(_point_shape(q, band), b, ms, mode, scale, tol, iterations, refine)
+  if res.hit == 0 or wp.dot(res.normal, na + nb) <= 0.0:
+    return c
+  return add_candidate(c, res.pos, res.normal, res.depth, spacing)
+
+
+@wp.func
+def _vertex(hfield_data: wp.array(dtype=float), adr: int, ncol: int, size: wp.vec4, dx: float, dy: float,
+            r: int, c: int) -> wp.vec3:
+  return wp.vec3(dx * float(c) - size[0], dy * float(r) - size[1], hfield_data[adr + r * ncol + c] * size[2])
+
+
+@wp.func
+def _ridge(e0: wp.vec3, e1: wp.vec3, o1: wp.vec3, o2: wp.vec3, eps: float) -> bool:
+  """Whether edge e0-e1, between triangles (e0, e1, o1) and (e0, e1, o2), is a ridge: o2 lies
+  below the plane of the first triangle."""
+  n = wp.cross(e1 - e0, o1 - e0)
+  n = wp.where(n[2] < 0.0, -n, n)
+  return wp.dot(n, o2 - e0) < -eps * wp.length(n)
+
+
+@wp.func
+def _peak(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float, dy: float,
+          r: int, c: int, eps: float) -> bool:
+  """Whether grid vertex (r, c) stands above the mean of its (up to 4) grid neighbours; a
+  vertex on the terrain's border always counts."""
+  if r == 0 or c == 0 or r == nrow - 1 or c == ncol - 1:
+    return True
+  h = hfield_data[adr + r * ncol + c]
+  around = 0.25 * (hfield_data[adr + (r - 1) * ncol + c] + hfield_data[adr + (r + 1) * ncol + c]
+                   + hfield_data[adr + r * ncol + c - 1] + hfield_data[adr + r * ncol + c + 1])
+  return (h - around) * size[2] > eps
+
+
+@wp.func
+def _axis(k: int) -> wp.vec3:
+  return wp.vec3(wp.where(k == 0, 1.0, 0.0), wp.where(k == 1, 1.0, 0.0), wp.where(k == 2, 1.0, 0.0))
+
+
+@wp.func
+def terrain_candidates(
+  hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape, ms: MeshSupport,
+  mode: int, band: float, spacing: float, tol: float, iterations: int, refine: int
+) -> Candidates:
+  """Contact candidates of geom B (posed in the terrain frame) against the terrain."""
+  cands = Candidates()
+  cands.n = 0
+  cands.cut = 0
+  lo = wp.vec3(0.0)
+  hi = wp.vec3(0.0)
+  for k in range(3):
+    hi[k] = support_world(b, ms, _axis(k), mode)[k] + band
+    lo[k] = support_world(b, ms, -_axis(k), mode)[k] - band
+  dx = 2.0 * size[0] / float(ncol - 1)
+  dy = 2.0 * size[1] / float(nrow - 1)
+  c0 = wp.max(0, int(wp.floor((lo[0] + size[0]) / dx)))
+  c1 = wp.min(ncol - 2, int(wp.floor((hi[0] + size[0]) / dx)))
+  r0 = wp.max(0, int(wp.floor((lo[1] + size[1]) / dy)))
+  r1 = wp.min(nrow - 2, int(wp.floor((hi[1] + size[1]) / dy)))
+  if c0 > c1 or r0 > r1 or lo[2] > size[2] or hi[2] < -size[3]:
+    return cands
+  if (c1 - c0 + 1) * (r1 - r0 + 1) > MAX_CELLS:
+    # keep the window of cells around the geom's centre
+    cands.cut = 1
+    half = wp.static(int(MAX_CELLS**0.5) // 2)
+    cc = int(wp.floor((b.center[0] + size[0]) / dx))
+    rc = int(wp.floor((b.center[1] + size[1]) / dy))
+    c0 = wp.max(c0, cc - half)
+    c1 = wp.min(c1, cc + half - 1)
+    r0 = wp.max(r0, rc - half)
+    r1 = wp.min(r1, rc + half - 1)
+  scale = wp.length(hi - lo) + dx + dy
+  # first the plane pass everywhere (face contacts), then prisms and points, which skip what
+  # the face contacts already hold
+  for cell in range(2 * (r1 - r0 + 1) * (c1 - c0 + 1)):
+    second = cell / ((r1 - r0 + 1) * (c1 - c0 + 1))
+    r = r0 + (cell / (c1 - c0 + 1)) % (r1 - r0 + 1)
+    c = c0 + cell % (c1 - c0 + 1)
+    if True:
+      p00 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c)
+      p01 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c + 1)
+      p10 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c)
+      p11 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c + 1)
+      if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < lo[2]:
+        continue  # the geom is above this cell
+      # the two triangles (p00, p10, p11) and (p00, p11, p01), normals up
+      na = wp.normalize(wp.cross(p10 - p00, p11 - p00))
+      na = wp.where(na[2] < 0.0, -na, na)
+      nb = wp.normalize(wp.cross(p11 - p00, p01 - p00))
+      nb = wp.where(nb[2] < 0.0, -nb, nb)
+      if second == 0:
+        cands = plane_pass(cands, b, ms, mode, p00, p10, p11, na, band, spacing)
+        cands = plane_pass(cands, b, ms, mode, p00, p11, p01, nb, band, spacing)
+        continue
+      cands = prism_pass(cands, b, ms, mode, p00, p10, p11, na, -size[3], band, spacing, scale, tol, iterations, refine)
+      cands = prism_pass(cands, b, ms, mode, p00, p11, p01, nb, -size[3], band, spacing, scale, tol, iterations, refine)
+      # this cell's vertex p00 and edges from it, its diagonal, and the range's far border:
+      # only convex features (ridges, peaks) can poke into a geom; elsewhere the surface
+      # points inside it are the plane pass's business. A ridge is tried at its point
+      # nearest B's centre and at both ends (a face of B meets it deepest at an end).
+      eps = 1.0e-6 * (dx + dy + size[2])
+      for k in range(9):
+        if (k == 4 or k == 6 or k == 8) and c < c1:
+          continue
+        if (k == 5 or k == 7 or k == 8) and r < r1:
+          continue
+        e0 = p00
+        e1 = p00
+        convex = bool(False)
+        if k == 0:
+          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, eps)
+        elif k == 1:
+          e1 = p01
+          other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
+          convex = r == 0 or _ridge(p00, p01, p11, other, eps)
+        elif k == 2:
+          e1 = p10
+          other = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
+          convex = c == 0 or _ridge(p00, p10, p11, other, eps)
+        elif k == 3:
+          e1 = p11
+          convex = _ridge(p00, p11, p10, p01, eps)
+        elif k == 4:
+          e0 = p01
+          e1 = p11
+          other = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
+          convex = c + 2 > ncol - 1 or _ridge(p01, p11, p00, other, eps)
+        elif k == 5:
+          e0 = p10
+          e1 = p11
+          other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
+          convex = r + 2 > nrow - 1 or _ridge(p10, p11, p00, other, eps)
+        elif k == 6:
+          e0 = p01
+          e1 = p01
+          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c + 1, eps)
+        elif k == 7:
+          e0 = p10
+          e1 = p10
+          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c, eps)
+        else:
+          e0 = p11
+          e1 = p11
+          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c + 1, eps)
+        if not convex:
+          continue
+        cands = point_pass(cands, b, ms, mode, _closest_on_segment(e0, e1, b.center), lo, hi, na, nb, band, spacing,
+                           scale, tol, iterations, refine)
+        if k >= 1 and k <= 5:
+          cands = point_pass(cands, b, ms, mode, e0, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
+          cands = point_pass(cands, b, ms, mode, e1, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
+  return cands
+
+
+@wp.func
+def choose(c: Candidates, max_contacts: int) -> vec_chosen:
+  """Candidates to write: the deepest, then each time the one farthest from those chosen
+  (-1 past the end)."""
+  out = vec_chosen()
+  for k in range(MAX_CONTACTS):
+    out[k] = -1
+  if c.n == 0:
+    return out
+  first = int(0)
+  for k in range(c.n):
+    if c.depth[k] > c.depth[first]:
+      first = k
+  out[0] = first
+  for j in range(1, wp.min(max_contacts, wp.min(c.n, MAX_CONTACTS))):
+    best = int(-1)
+    best_dist = float(-1.0)
+    for k in range(c.n):
+      nearest = float(1.0e30)
+      for i in range(j):
+        nearest = wp.min(nearest, wp.length(_row(c.pos, k) - _row(c.pos, out[i])))
+      if nearest > best_dist:
+        best = k
+        best_dist = nearest
+    out[j] = best
+  return out
+
+
+@wp.kernel(enable_backward=False)
+def hfield_narrowphase(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_condim: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_priority: wp.array(dtype=int),
+  geom_solmix: wp.array2d(dtype=float),
+  geom_solref: wp.array2d(dtype=wp.vec2),
+  geom_solimp: wp.array2d(dtype=vec5),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_friction: wp.array2d(dtype=wp.vec3),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  geom_adhesion: wp.array2d(dtype=float),
+  geom_aabb: wp.array3d(dtype=wp.vec3),
+  hfield_size: wp.array(dtype=wp.vec4),
+  hfield_nrow: wp.array(dtype=int),
+  hfield_ncol: wp.array(dtype=int),
+  hfield_adr: wp.array(dtype=int),
+  hfield_data: wp.array(dtype=float),
+  pair_dim: wp.array(dtype=int),
+  pair_solref: wp.array2d(dtype=wp.vec2),
+  pair_solreffriction: wp.array2d(dtype=wp.vec2),
+  pair_solimp: wp.array2d(dtype=vec5),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  pair_adhesion: wp.array2d(dtype=float),
+  pair_friction: wp.array2d(dtype=vec5),
+  opt_warn_hfield: int,
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  naconmax_in: int,
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  tolerance: float,
+  iterations: int,
+  refine: int,
+  max_contacts: int,
+  mc_tolerance: float,
+  npair_in: wp.array(dtype=int),
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  nthread: int,
+  # Data out:
+  overflow_out: wp.array(dtype=int),
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """Contacts of heightfield - convex pairs (heightfield first, as MuJoCo orders them)."""
+  tid = wp.tid()
+  for cid in range(tid, npair_in[0], nthread):
+    geoms = pair_in[cid]
+    g1 = geoms[0]
+    g2 = geoms[1]
+    if geom_type[g1] != GeomType.HFIELD or geom_type[g2] == GeomType.HFIELD or geom_type[g2] == GeomType.PLANE:
+      continue
+    worldid = pair_worldid_in[cid]
+    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
+      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
+      pair_friction, pair_in, pairid_in, cid, worldid,
+    )
+    terrain = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
+    b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
+    # B in the terrain frame
+    rt = wp.transpose(terrain.rot)
+    b.pos = rt @ (b.pos - terrain.pos)
+    b.center = rt @ (b.center - terrain.pos)
+    b.rot = rt @ b.rot
+    hf = geom_dataid[worldid % geom_dataid.shape[0], g1]
+    band = wp.max(margin + gap, 0.0)
+    ab = worldid % geom_aabb.shape[0]
+    spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[ab, g2, 1])
+    cands = terrain_candidates(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
+                               support_mode, band, spacing, tolerance, iterations, refine)
+    if cands.cut:
+      wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
+      if opt_warn_hfield:
+        wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
+                  "cells around its centre are used\n", g2, MAX_CELLS, worldid)
+    chosen = choose(cands, max_contacts)
+    for k in range(MAX_CONTACTS):
+      i = chosen[k]
+      if i < 0:
+        continue
+      normal = terrain.rot @ _row(cands.normal, i)
+      pos = terrain.pos + terrain.rot @ _row(cands.pos, i)
+      write_contact(
+        naconmax_in, k, band - cands.depth[i], pos - 0.5 * band * normal, make_frame(normal), margin, gap, condim,
+        friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
+        contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+        contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+        contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      )

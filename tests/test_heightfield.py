@@ -1,0 +1,149 @@
+"""Heightfields: flat terrain acts as a plane, slopes and ridges give the analytic contact, a
+geom over many cells is found, bad grids are rejected, and nothing falls through bumpy terrain."""
+
+import os
+import sys
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import pytest
+from conftest import MODELS
+from conftest import angle_deg
+from conftest import contacts
+from conftest import load
+
+import mjx_supportfield as sf
+
+sys.path.insert(0, MODELS)
+import make_terrain  # noqa: E402
+
+
+def _hfield_xml(elevation: np.ndarray, size, bodies: str) -> str:
+  nrow, ncol = elevation.shape
+  return f"""<mujoco><asset><hfield name="h" nrow="{nrow}" ncol="{ncol}" size="{' '.join(map(str, size))}"
+    elevation="{' '.join(f'{v:.6f}' for v in elevation.ravel())}"/></asset>
+    <worldbody><geom name="terrain" type="hfield" hfield="h"/>{bodies}</worldbody></mujoco>"""
+
+
+def _plugin_contacts(xml: str):
+  sim = load(xml)
+  sf.install(sim.mjm, sim.m)
+  sf.collision(sim.m, sim.d)
+  return sim, contacts(sim.d, 0)
+
+
+def _sorted(pos):
+  return pos[np.lexsort(np.round(pos, 5).T)]
+
+
+BOX = '<body pos="0.03 -0.02 0.0195" euler="0 0 20"><freejoint/><geom name="box" type="box" size=".06 .04 .02"/></body>'
+
+
+@pytest.mark.parametrize("n", [9, 65])
+def test_flat_terrain_gives_the_plane_contacts(n):
+  """A box on flat terrain (coarse: the box inside one cell; fine: over ~100 cells) touches
+  at MuJoCo's plane-box points."""
+  _, hf = _plugin_contacts(_hfield_xml(np.zeros((n, n)), (0.5, 0.5, 0.1, 0.1), BOX))
+  plane = load(f'<mujoco><worldbody><geom type="plane" size="1 1 .1"/>{BOX}</worldbody></mujoco>')
+  ref = plane.mjd.contact[: plane.mjd.ncon]
+  assert hf.n == len(ref) == 4
+  np.testing.assert_allclose(_sorted(hf.pos), _sorted(np.array([c.pos for c in ref])), atol=1e-5)
+  np.testing.assert_allclose(hf.dist, [c.dist for c in ref], atol=1e-6)
+  np.testing.assert_allclose(hf.normal, np.tile([0.0, 0.0, 1.0], (4, 1)), atol=1e-6)
+
+
+def test_sphere_on_slope_gets_the_analytic_normal():
+  x = np.linspace(-1.0, 1.0, 5)
+  z = 0.25 * (x + 1.0)  # z = 0.25 (x + 1): a plane, heights normalised by size[2] = 0.5
+  normal = np.array([-0.25, 0.0, 1.0]) / np.linalg.norm([-0.25, 0.0, 1.0])
+  r, depth = 0.1, 0.01
+  centre = np.array([0.13, 0.07, 0.25 * 1.13]) + (r - depth) * normal
+  ball = f'<body pos="{centre[0]} {centre[1]} {centre[2]}"><freejoint/><geom type="sphere" size="{r}"/></body>'
+  _, c = _plugin_contacts(_hfield_xml(np.tile(z / 0.5, (5, 1)), (1, 1, 0.5, 0.1), ball))
+  assert c.n == 1
+  assert angle_deg(c.normal[0], normal) < 0.01
+  assert abs(-c.dist[0] - depth) < 1e-6
+
+
+def test_ridge_poking_into_a_sphere():
+  """A sphere over a roof ridge touches only the ridge edge: no triangle's plane sees it."""
+  x = np.linspace(-1.0, 1.0, 5)
+  roof = np.tile(1.0 - np.abs(x), (5, 1))  # ridge along y at x = 0, height 0.5 * 1
+  r, depth = 0.05, 0.002
+  ball = f'<body pos="0 0.1 {0.5 + r - depth}"><freejoint/><geom type="sphere" size="{r}"/></body>'
+  _, c = _plugin_contacts(_hfield_xml(roof, (1, 1, 0.5, 0.1), ball))
+  assert c.n >= 1
+  deepest = int(np.argmin(c.dist))
+  assert angle_deg(c.normal[deepest], [0, 0, 1]) < 0.5
+  assert abs(-c.dist[deepest] - depth) < 1e-5
+  np.testing.assert_allclose(c.pos[deepest][:2], [0.0, 0.1], atol=1e-4)
+
+
+def test_small_box_across_a_coarse_ridge():
+  """A box smaller than a cell lying across the ridge edge, its corners in the air."""
+  x = np.linspace(-1.0, 1.0, 3)
+  roof = np.tile(1.0 - np.abs(x), (3, 1))  # one ridge at x = 0, cells 1 m wide
+  box = '<body pos="0 0.2 0.519" euler="0 0 0"><freejoint/><geom type="box" size=".04 .04 .02"/></body>'
+  _, c = _plugin_contacts(_hfield_xml(roof, (1, 1, 0.5, 0.1), box))
+  assert c.n >= 1
+  assert np.all(np.abs(c.pos[:, 0]) < 1e-3)  # on the ridge line
+  np.testing.assert_allclose(-c.dist.max(), 0.001, atol=1e-5)  # the box bottom is 1 mm below the ridge top
+  assert np.all(c.normal[:, 2] > 0.999)
+
+
+def test_bad_heightfield_is_rejected():
+  mjm = mujoco.MjModel.from_xml_string(_hfield_xml(np.zeros((3, 3)), (1, 1, 0.1, 0.1), BOX))
+  m = mjw.put_model(mjm)
+  mjm.hfield_ncol[0] = 1  # MuJoCo's compiler refuses such a grid; an edited model must be refused too
+  with pytest.raises(ValueError, match="geom 'terrain'.*1 columns"):
+    sf.install(mjm, m)
+  with pytest.raises(ValueError, match="hfield dimensions"):
+    mujoco.MjModel.from_xml_string(_hfield_xml(np.zeros((1, 3)), (1, 1, 0.1, 0.1), BOX))
+
+
+def _surface_clearance(mjm, mjd):
+  """Per body: height of its centre above the terrain surface below it."""
+  data = mjm.hfield_data.reshape(mjm.hfield_nrow[0], mjm.hfield_ncol[0])
+  return {mjm.body(b).name: mjd.xpos[b][2] - make_terrain.terrain_height(mjm.hfield_size[0], data, *mjd.xpos[b][:2])
+          for b in range(1, mjm.nbody)}
+
+
+STEPS = 1500
+
+
+@pytest.fixture(scope="module")
+def dropped():
+  """models/terrain.xml stepped by the plugin through mjw.step (and MuJoCo C for reference)."""
+  sim = load("terrain")
+  sf.install(sim.mjm, sim.m)
+  lowest = {}
+  for i in range(STEPS):
+    mjw.step(sim.m, sim.d)
+    if i % 50 == 49:
+      mjd = mujoco.MjData(sim.mjm)
+      mjd.qpos[:] = sim.d.qpos.numpy()[0]
+      mujoco.mj_kinematics(sim.mjm, mjd)
+      for name, h in _surface_clearance(sim.mjm, mjd).items():
+        lowest[name] = min(lowest.get(name, np.inf), h)
+  return sim, lowest
+
+
+def test_terrain_scene_matches_generator():
+  with open(os.path.join(MODELS, "terrain.xml")) as f:
+    assert f.read() == make_terrain.xml()
+
+
+def test_every_body_stays_on_the_terrain(dropped):
+  sim, lowest = dropped
+  assert np.all(np.isfinite(sim.d.qpos.numpy()))
+  assert set(lowest) == {b[0] for b in make_terrain.BODIES}
+  for name, clearance in lowest.items():
+    # centres never sink below the surface by more than a tenth of the smallest geom radius
+    assert clearance > 0.0, (name, clearance)
+
+
+def test_bodies_come_to_rest_on_it(dropped):
+  sim, _ = dropped
+  assert np.abs(sim.d.qvel.numpy()).max() < 0.2
+  assert int(sim.d.nacon.numpy()[0]) >= len(make_terrain.BODIES)

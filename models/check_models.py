@@ -33,6 +33,7 @@ SCENES = [
     "convex_pile.xml",
     "box_stack.xml",
     "mesh_on_plane.xml",
+    "resting.xml",
 ]
 MAX_FLOOR_PENETRATION = 0.025  # m, at any step (impacts)
 MAX_FINAL_PENETRATION = 0.005  # m, after the last step (settled)

@@ -1,0 +1,320 @@
+"""Contact manifolds of single pairs: counts, positions, depths and normals against MuJoCo C
+(mj_forward) and the analytic answers.
+
+Plane-box, plane-cylinder and box-box go through MuJoCo Warp's analytic routines in the plugin;
+box-box is the primitive box_box, MuJoCo C's own algorithm, so the plugin's manifolds equal
+MuJoCo C's (count and positions) to float32 precision. Stock MuJoCo Warp sends box-box through
+its GJK/EPA multi-contact path instead, which gives 4 of the overlap polygon's 5 corners in the
+rotated face-on-face case below; that is why these are compared with MuJoCo C, not with stock.
+
+Mesh-mesh and cylinder-box go through MPR and pose-perturbation multi-contact: by design 5
+points (MPR's contact plus one per tilt of the 4 tilts), where MuJoCo C's multiccd gives 4.
+These points must lie in the true contact patch, cover most of it (the area of their convex hull
+over the patch's area; at least as much as MuJoCo C's points) and carry its depth and normal.
+
+Every case overlaps by a known depth; the lower body of the pair is static (world geoms do not
+collide with each other or the floor), so each pair is alone.
+"""
+
+import dataclasses
+from typing import Optional
+
+import mujoco
+import numpy as np
+import pytest
+
+import mjx_supportfield as sf
+from conftest import angle_deg
+from conftest import contacts
+from conftest import load
+
+H = 0.05  # half-size of every cube
+CUBE = " ".join(f"{x} {y} {z}" for x in (-H, H) for y in (-H, H) for z in (-H, H))
+R2 = H * np.sqrt(2.0)  # centre-to-edge distance of a cube turned 45 degrees about an axis
+R3 = H * np.sqrt(3.0)  # centre-to-corner distance
+CYL_R, CYL_H = 0.03, 0.05
+DEPTH = 1e-3
+TOP = 1.1  # top face of the static lower cubes (centres at z = 1.05)
+
+
+def _vertex_down_quat():
+  """Quaternion (w, x, y, z) that turns the cube's corner (1, 1, 1) to point straight down."""
+  a = np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0)
+  axis = np.cross(a, [0.0, 0.0, -1.0])
+  angle = np.arctan2(np.linalg.norm(axis), -a[2])
+  return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis / np.linalg.norm(axis)])
+
+
+QV = " ".join(f"{x:.9f}" for x in _vertex_down_quat())
+
+XML = f"""
+<mujoco>
+  <asset><mesh name="cube" vertex="{CUBE}"/></asset>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 .1"/>
+    <body pos="0 0 {H - DEPTH}"><freejoint/><geom name="box_flat" type="box" size="{H} {H} {H}"/></body>
+    <body pos="0.5 0 {H - DEPTH}" euler="0 0 30"><freejoint/><geom name="box_turned" type="box" size="{H} {H} {H}"/></body>
+    <body pos="1 0 0.069"><freejoint/><geom name="box_edge" type="box" size="{H} {H} {H}" euler="0 45 0"/></body>
+    <body pos="1.5 0 {R3 - DEPTH:.9f}" quat="{QV}"><freejoint/><geom name="box_vertex" type="box" size="{H} {H} {H}"/></body>
+    <body pos="2 0 {CYL_H - DEPTH}"><freejoint/><geom name="cyl_end" type="cylinder" size="{CYL_R} {CYL_H}"/></body>
+
+    <geom name="face_lo" pos="0 1 1.05" type="box" size="{H} {H} {H}"/>
+    <body pos="0.01 1.02 {TOP + H - DEPTH}" euler="0 0 20"><freejoint/><geom name="face_hi" type="box" size="{H} {H} {H}"/></body>
+    <geom name="edge_lo" pos="0.5 1 1.05" type="box" size="{H} {H} {H}"/>
+    <body pos="0.5 1 1.169"><freejoint/><geom name="edge_hi" type="box" size="{H} {H} {H}" euler="0 45 0"/></body>
+    <geom name="cross_lo" pos="1 1 1.05" type="box" size="{H} {H} {H}" euler="45 0 0"/>
+    <body pos="1 1 1.189"><freejoint/><geom name="cross_hi" type="box" size="{H} {H} {H}" euler="0 45 0"/></body>
+    <geom name="vertex_lo" pos="1.5 1 1.05" type="box" size="{H} {H} {H}"/>
+    <body pos="1.5 1 {TOP + R3 - DEPTH:.9f}" quat="{QV}"><freejoint/><geom name="vertex_hi" type="box" size="{H} {H} {H}"/></body>
+
+    <geom name="mesh_lo" pos="0 2 1.05" type="mesh" mesh="cube"/>
+    <body pos="0.01 2.02 {TOP + H - DEPTH}" euler="0 0 20"><freejoint/><geom name="mesh_hi" type="mesh" mesh="cube"/></body>
+    <geom name="meshal_lo" pos="0.5 2 1.05" type="mesh" mesh="cube"/>
+    <body pos="0.52 2.01 {TOP + H - DEPTH}"><freejoint/><geom name="meshal_hi" type="mesh" mesh="cube"/></body>
+    <geom name="cylbox_lo" pos="1 2 1.05" type="box" size="{H} {H} {H}"/>
+    <body pos="1 2 {TOP + CYL_H - DEPTH}"><freejoint/><geom name="cylbox_hi" type="cylinder" size="{CYL_R} {CYL_H}"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _rot2(deg):
+  c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+  return np.array([[c, -s], [s, c]])
+
+
+def _square(centre, half, deg=0.0):
+  """Corners (4, 2) of a square, counter-clockwise."""
+  return np.asarray(centre) + np.array([[-half, -half], [half, -half], [half, half], [-half, half]]) @ _rot2(deg).T
+
+
+def _clip(poly, a, b):
+  """The part of convex polygon ``poly`` left of the directed line a -> b (Sutherland-Hodgman)."""
+  out = []
+  side = [(b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]) for p in poly]
+  for i, p in enumerate(poly):
+    j = (i + 1) % len(poly)
+    if side[i] >= 0:
+      out.append(p)
+    if side[i] * side[j] < 0:
+      out.append(p + (poly[j] - p) * side[i] / (side[i] - side[j]))
+  return np.array(out)
+
+
+def _overlap(p, q):
+  """Intersection of two convex counter-clockwise polygons."""
+  for i in range(len(q)):
+    p = _clip(p, q[i], q[(i + 1) % len(q)])
+  return p
+
+
+def _area(poly):
+  x, y = poly[:, 0], poly[:, 1]
+  return 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def _hull(points):
+  """Convex hull (counter-clockwise) of 2D points, monotone chain."""
+  pts = sorted({(float(x), float(y)) for x, y in points})
+  if len(pts) < 3:
+    return np.array(pts)
+
+  def chain(seq):
+    out = []
+    for p in seq:
+      while len(out) >= 2 and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
+                               - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])) <= 0:
+        out.pop()
+      out.append(p)
+    return out
+
+  lower, upper = chain(pts), chain(pts[::-1])
+  return np.array(lower[:-1] + upper[:-1])
+
+
+def _disc(centre, r, n=720):
+  t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+  return np.asarray(centre) + r * np.stack([np.cos(t), np.sin(t)], axis=1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+  """One pair: the normal points from geom a to geom b; the contact midpoints lie at height z.
+
+  points: the analytic contact points (analytic pairs; exactly these, in any order), or None;
+  patch: the true contact patch as a convex counter-clockwise polygon (x, y) (MPR pairs).
+  """
+
+  a: str
+  b: str
+  depth: float
+  z: float
+  points: Optional[np.ndarray] = None
+  patch: Optional[np.ndarray] = None
+
+
+def _flat(xy, z):
+  xy = np.asarray(xy, dtype=np.float64)
+  return np.column_stack([xy, np.full(len(xy), z)])
+
+
+EDGE_DEPTH = R2 - 0.069  # a cube on an edge, its centre 0.069 above the face
+CROSS_DEPTH = 2.0 * R2 - (1.189 - 1.05)  # two crossed edges
+FACE_PATCH = _overlap(_square((0.0, 1.0), H), _square((0.01, 1.02), H, 20.0))
+MESH_PATCH = _overlap(_square((0.0, 2.0), H), _square((0.01, 2.02), H, 20.0))
+
+ANALYTIC = {
+  "box-plane face": Case("floor", "box_flat", DEPTH, -DEPTH / 2, _flat(_square((0, 0), H), -DEPTH / 2)),
+  "box-plane face turned": Case("floor", "box_turned", DEPTH, -DEPTH / 2, _flat(_square((0.5, 0), H, 30), -DEPTH / 2)),
+  "box-plane edge": Case("floor", "box_edge", EDGE_DEPTH, -EDGE_DEPTH / 2, _flat([(1, -H), (1, H)], -EDGE_DEPTH / 2)),
+  "box-plane vertex": Case("floor", "box_vertex", DEPTH, -DEPTH / 2, _flat([(1.5, 0)], -DEPTH / 2)),
+  "box-box face": Case("face_lo", "face_hi", DEPTH, TOP - DEPTH / 2, _flat(FACE_PATCH, TOP - DEPTH / 2)),
+  "box-box edge-face": Case("edge_lo", "edge_hi", EDGE_DEPTH, TOP - EDGE_DEPTH / 2,
+                            _flat([(0.5, 1 - H), (0.5, 1 + H)], TOP - EDGE_DEPTH / 2)),
+  "box-box edge-edge": Case("cross_lo", "cross_hi", CROSS_DEPTH, 1.05 + R2 - CROSS_DEPTH / 2,
+                            _flat([(1, 1)], 1.05 + R2 - CROSS_DEPTH / 2)),
+  "box-box vertex-face": Case("vertex_lo", "vertex_hi", DEPTH, TOP - DEPTH / 2, _flat([(1.5, 1)], TOP - DEPTH / 2)),
+}
+# cylinder on its end: the rim points are MuJoCo's choice (3, 120 degrees apart); checked below
+CYL_PLANE = Case("floor", "cyl_end", DEPTH, -DEPTH / 2, patch=_disc((2, 0), CYL_R))
+MPR = {
+  "mesh-mesh face turned": Case("mesh_lo", "mesh_hi", DEPTH, TOP - DEPTH / 2, patch=MESH_PATCH),
+  "mesh-mesh face aligned": Case("meshal_lo", "meshal_hi", DEPTH, TOP - DEPTH / 2,
+                                 patch=_overlap(_square((0.5, 2.0), H), _square((0.52, 2.01), H))),
+  "cylinder end on box": Case("cylbox_lo", "cylbox_hi", DEPTH, TOP - DEPTH / 2, patch=_disc((1, 2), CYL_R)),
+}
+MPR_COUNT = 5  # MPR's contact + one per tilt (multicontact.NPERTURB = 4)
+MUJOCO_MPR_COUNT = 4  # MuJoCo C's multiccd on these cases
+
+
+@dataclasses.dataclass
+class Manifold:
+  """Contacts of one pair, normals oriented from geom a to geom b."""
+
+  dist: np.ndarray
+  pos: np.ndarray
+  normal: np.ndarray
+
+
+def _select(geom, dist, pos, normal, a, b):
+  sel = [i for i in range(len(dist)) if {int(geom[i][0]), int(geom[i][1])} == {a, b}]
+  sign = np.array([1.0 if int(geom[i][0]) == a else -1.0 for i in sel])
+  return Manifold(np.asarray(dist, dtype=np.float64)[sel], np.asarray(pos, dtype=np.float64)[sel],
+                  sign[:, None] * np.asarray(normal, dtype=np.float64)[sel] if sel else np.zeros((0, 3)))
+
+
+def collide() -> dict:
+  """{case name: (plugin Manifold, MuJoCo C Manifold)} from one collision of the scene."""
+  sim = load(XML)
+  mjm, mjd = sim.mjm, sim.mjd
+  sf.install(mjm, sim.m)
+  sf.collision(sim.m, sim.d)
+  c = contacts(sim.d, 0)
+  sf.uninstall(sim.m)
+  n, ref = mjd.ncon, mjd.contact
+  out = {}
+  for name, case in {**ANALYTIC, "cylinder-plane end": CYL_PLANE, **MPR}.items():
+    a = int(mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, case.a))
+    b = int(mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, case.b))
+    got = _select(c.geom, c.dist, c.pos, c.normal, a, b)
+    want = _select(ref.geom[:n], ref.dist[:n], ref.pos[:n], ref.frame[:n, :3], a, b)
+    out[name] = (got, want)
+  return out
+
+
+@pytest.fixture(scope="module")
+def manifolds():
+  return collide()
+
+
+def _match(got, want, tol):
+  """Largest distance of a one-to-one nearest-point matching of two equal-sized point sets."""
+  d = np.linalg.norm(got[:, None, :] - want[None, :, :], axis=2)
+  nearest = d.argmin(axis=1)
+  assert len(set(nearest.tolist())) == len(got), f"two points share one nearest point:\n{got}\n{want}"
+  worst = float(d[np.arange(len(got)), nearest].max())
+  assert worst < tol, f"points {worst:.2e} m apart:\n{np.round(got, 6)}\n{np.round(want, 6)}"
+
+
+def _check_depth_normal(m: Manifold, case: Case, tol_depth=1e-5, tol_deg=0.01):
+  np.testing.assert_allclose(-m.dist, case.depth, atol=tol_depth)
+  angles = [angle_deg(n, [0.0, 0.0, 1.0]) for n in m.normal]
+  assert max(angles) < tol_deg, f"normal off +z by {max(angles):.4f} deg"
+  np.testing.assert_allclose(m.pos[:, 2], case.z, atol=tol_depth)
+
+
+@pytest.mark.parametrize("name", list(ANALYTIC) + ["cylinder-plane end"])
+def test_analytic_pairs_equal_mujoco(manifolds, name):
+  """Analytic routines: the same number of contacts as MuJoCo C, at the same places, as deep."""
+  got, want = manifolds[name]
+  assert len(want.dist) > 0, f"{name}: MuJoCo C finds no contact; the case is mis-built"
+  assert len(got.dist) == len(want.dist), f"{name}: {len(got.dist)} contacts, MuJoCo C {len(want.dist)}"
+  _match(got.pos, want.pos, 2e-5)
+  np.testing.assert_allclose(np.sort(got.dist), np.sort(want.dist), atol=2e-6)
+  for n in got.normal:
+    assert angle_deg(n, want.normal[0]) < 0.01
+
+
+@pytest.mark.parametrize("name", list(ANALYTIC))
+def test_analytic_pairs_exact(manifolds, name):
+  """Boxes: the contacts are the analytic corners of the overlap (face: every corner of the
+  overlap polygon; edge: the edge's two ends; vertex and crossed edges: one point)."""
+  case = ANALYTIC[name]
+  got, _ = manifolds[name]
+  assert len(got.dist) == len(case.points), f"{name}: {len(got.dist)} contacts, expected {len(case.points)}"
+  _match(got.pos, case.points, 2e-5)
+  _check_depth_normal(got, case)
+
+
+def test_cylinder_on_end_on_plane(manifolds):
+  """Three points on the rim (MuJoCo's choice), at the overlap depth, around the axis: the
+  triangle they span holds the cylinder's centre, so the contact can carry it."""
+  got, _ = manifolds["cylinder-plane end"]
+  assert len(got.dist) == 3
+  _check_depth_normal(got, CYL_PLANE)
+  radial = np.linalg.norm(got.pos[:, :2] - [2.0, 0.0], axis=1)
+  np.testing.assert_allclose(radial, CYL_R, atol=1e-5)
+  # the centre is inside: a convex combination of the three points (1/3 each when evenly spread)
+  w = np.linalg.solve(np.vstack([got.pos[:, :2].T, np.ones(3)]), [2.0, 0.0, 1.0])
+  assert np.all(w > 0.2), w
+
+
+@pytest.mark.parametrize("name", list(MPR))
+def test_mpr_count(manifolds, name):
+  """MPR pairs: 5 contacts by design (MuJoCo C's multiccd: 4)."""
+  got, want = manifolds[name]
+  assert len(got.dist) == MPR_COUNT, f"{name}: {len(got.dist)} contacts"
+  assert len(want.dist) == MUJOCO_MPR_COUNT, f"{name}: MuJoCo C now gives {len(want.dist)}; update the docs"
+
+
+@pytest.mark.parametrize("name", list(MPR))
+def test_mpr_points_in_patch_with_depth_and_normal(manifolds, name):
+  case = MPR[name]
+  got, _ = manifolds[name]
+  _check_depth_normal(got, case)
+  poly = case.patch
+  for i in range(len(poly)):  # inside every edge's half-plane, 0.01 mm tolerance
+    a, b = poly[i], poly[(i + 1) % len(poly)]
+    e = b - a
+    side = (e[0] * (got.pos[:, 1] - a[1]) - e[1] * (got.pos[:, 0] - a[0])) / np.linalg.norm(e)
+    assert np.all(side > -1e-5), f"{name}: point {got.pos[side.argmin()]} outside the patch by {-side.min():.2e} m"
+
+
+@pytest.mark.parametrize("name", list(MPR))
+def test_mpr_points_span_patch(manifolds, name):
+  """The points' convex hull covers most of the patch (> 60 %; 4 points on a disc cover at most
+  2/pi = 64 %) and at least as much as MuJoCo C's points."""
+  case = MPR[name]
+  got, want = manifolds[name]
+  patch = _area(case.patch)
+  cover = _area(_hull(got.pos[:, :2])) / patch
+  cover_ref = _area(_hull(want.pos[:, :2])) / patch
+  assert cover > 0.6, f"{name}: the points cover {cover:.1%} of the patch (MuJoCo C {cover_ref:.1%})"
+  assert cover >= cover_ref - 1e-3, f"{name}: the points cover {cover:.1%} of the patch, MuJoCo C's {cover_ref:.1%}"
+
+
+def test_mpr_deepest_matches_mujoco(manifolds):
+  for name in MPR:
+    got, want = manifolds[name]
+    assert got.dist.min() == pytest.approx(want.dist.min(), abs=1e-5), name
+    assert angle_deg(got.normal[got.dist.argmin()], want.normal[want.dist.argmin()]) < 0.01, name

@@ -39,6 +39,23 @@ def _tilted(a: Shape, pivot: wp.vec3, rot: wp.mat33) -> Shape:
 
 
 @wp.func
+def keep_first(first: MprResult, patch: Patch, min_spacing: float, tol: float) -> bool:
+  """Whether MPR's own point belongs to the contact set besides the patch's points.
+
+  Three or more patch points span a face contact and MPR's point, somewhere on that face, is
+  left out unless deeper than all of them by more than tol: on a face it lands on one corner
+  or another as the bodies rock, and writing it made the contact count flicker. It is also
+  left out when it duplicates a patch point.
+  """
+  deepest = float(-1.0e30)
+  for j in range(patch.n):
+    deepest = wp.max(deepest, patch.depth[j])
+    if wp.length(first.pos - wp.vec3(patch.pos[j, 0], patch.pos[j, 1], patch.pos[j, 2])) < min_spacing:
+      return False
+  return patch.n < 3 or first.depth > deepest + tol
+
+
+@wp.func
 def perturbed_contacts(
   a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
   eps: float, min_spacing: float
@@ -69,7 +86,7 @@ def perturbed_contacts(
     if depth <= 0.0:
       continue
     pos = 0.5 * (pa + pb)
-    dup = wp.length(pos - first.pos) < min_spacing
+    dup = bool(False)
     for j in range(patch.n):
       if wp.length(pos - wp.vec3(patch.pos[j, 0], patch.pos[j, 1], patch.pos[j, 2])) < min_spacing:
         dup = True

@@ -21,6 +21,7 @@ from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.mpr import mpr_refined_from
 from mjx_supportfield.multicontact import Patch
+from mjx_supportfield.multicontact import keep_first
 from mjx_supportfield.multicontact import perturbed_contacts
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import needs_sdf
@@ -367,18 +368,22 @@ def mpr_narrowphase(
       or geom_type[g2] == GeomType.SPHERE
       or geom_type[g2] == GeomType.ELLIPSOID
     )
+    # duplicates: closer than mc_tolerance x the smaller geom's box size
+    ab = worldid % geom_aabb.shape[0]
+    size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
     if max_contacts > 1 and not one_point and extra.n == 0:
-      # duplicates: closer than mc_tolerance x the smaller geom's box size
-      ab = worldid % geom_aabb.shape[0]
-      size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
       extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
                                  mc_tolerance * size)
-    for k in range(1 + wp.max(wp.min(extra.n, max_contacts - 1), 0)):
+    # contact list: MPR's point (index -1) when it is kept, then the patch's points
+    first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, mc_tolerance * size, tolerance * scale), -1, 0), -1)
+    count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
+    for k in range(count):
+      j = first + k
       depth = res.depth
       pos = res.pos
-      if k > 0:
-        depth = extra.depth[k - 1]
-        pos = wp.vec3(extra.pos[k - 1, 0], extra.pos[k - 1, 1], extra.pos[k - 1, 2])
+      if j >= 0:
+        depth = extra.depth[j]
+        pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
       write_contact(
         naconmax_in,
         k,

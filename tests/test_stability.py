@@ -28,14 +28,6 @@ PLANE_BODIES = ("box", "cylinder", "convex")
 MESH_BODIES = ("meshcube0", "meshcube1")
 
 # the plugin's multi-contact on the mesh cube on the mesh cube (benchmarks/README.md, Stability)
-MESH_PAIR_JITTER = (
-  "MPR's own contact point of the face-on-face mesh pair jumps between opposite corners of the"
-  " overlap octagon (4.4 cm by nearest point, every 2 steps) as the top cube rocks by ~5e-6 rad"
-  " in a 4-step cycle: on a nearly flat contact MPR reports the deepest corner, which flips with"
-  " the sign of the tilt; the 4 tilt points stay put. MuJoCo C: 3.6e-8 m, stock MuJoCo Warp: 1.2e-7 m"
-)
-
-
 def _run(scene):
   mjm = mujoco.MjModel.from_xml_path(stability.model_path(scene))
   names = [mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, i) for i in range(mjm.ngeom)]
@@ -84,8 +76,7 @@ def test_resting_drift(resting, body):
 
 @pytest.mark.parametrize(
   "pair",
-  [f"floor-{b}" for b in PLANE_BODIES + MESH_BODIES[:1]]
-  + [pytest.param("meshcube0-meshcube1", marks=pytest.mark.xfail(strict=True, reason=MESH_PAIR_JITTER))],
+  [f"floor-{b}" for b in PLANE_BODIES + MESH_BODIES[:1]] + ["meshcube0-meshcube1"],
 )
 def test_resting_contact_motion(resting, pair):
   _motion(resting, pair)

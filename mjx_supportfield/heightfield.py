@@ -28,12 +28,15 @@ more than MAX_CELLS cells keeps the cells nearest its centre and sets ``Overflow
 
 import warp as wp
 from mujoco_warp._src.collision_core import contact_params
-from mujoco_warp._src.collision_core import write_contact
-from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import vec5
 
+from mjx_supportfield.candidates import Candidates
+from mjx_supportfield.candidates import add_candidate
+from mjx_supportfield.candidates import empty
+from mjx_supportfield.candidates import write_candidates
+from mjx_supportfield.candidates import row
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.support import hull_point
@@ -41,61 +44,7 @@ from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
-NCANDIDATE = 16  # contact candidates kept per pair before the final choice
 MAX_CELLS = 4096  # cells visited per pair (a 64 x 64 window)
-MAX_CONTACTS = 8  # most contacts written per pair (Options.max_contacts_per_pair bounds it too)
-
-mat_cand = wp.types.matrix(shape=(NCANDIDATE, 3), dtype=float)
-vec_cand = wp.types.vector(length=NCANDIDATE, dtype=float)
-vec_chosen = wp.types.vector(length=MAX_CONTACTS, dtype=int)
-
-
-@wp.struct
-class Candidates:
-  """Contact candidates of one pair in the terrain frame (depth includes the margin band)."""
-
-  n: int
-  pos: mat_cand
-  normal: mat_cand
-  depth: vec_cand
-  cut: int  # 1 when the geom covered more than MAX_CELLS cells
-
-
-@wp.func
-def _row(m: mat_cand, k: int) -> wp.vec3:
-  return wp.vec3(m[k, 0], m[k, 1], m[k, 2])
-
-
-@wp.func
-def _put(c: Candidates, k: int, pos: wp.vec3, normal: wp.vec3, depth: float) -> Candidates:
-  out = c
-  for i in range(3):
-    out.pos[k, i] = pos[i]
-    out.normal[k, i] = normal[i]
-  out.depth[k] = depth
-  return out
-
-
-@wp.func
-def add_candidate(c: Candidates, pos: wp.vec3, normal: wp.vec3, depth: float, spacing: float) -> Candidates:
-  """Adds a candidate: one within ``spacing`` of it keeps the deeper of the two; a full list
-  gives up its shallowest for a deeper one."""
-  for k in range(c.n):
-    if wp.length(_row(c.pos, k) - pos) < spacing:
-      if depth > c.depth[k]:
-        return _put(c, k, pos, normal, depth)
-      return c
-  if c.n < NCANDIDATE:
-    out = _put(c, c.n, pos, normal, depth)
-    out.n = c.n + 1
-    return out
-  shallowest = int(0)
-  for k in range(NCANDIDATE):
-    if c.depth[k] < c.depth[shallowest]:
-      shallowest = k
-  if depth > c.depth[shallowest]:
-    return _put(c, shallowest, pos, normal, depth)
-  return c
 
 
 @wp.func
@@ -168,7 +117,7 @@ def prism_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3,
   if res.hit == 0 or wp.dot(res.normal, n) < 0.5:
     return c
   for k in range(c.n):
-    if wp.dot(_row(c.normal, k), res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
+    if wp.dot(row(c.normal, k), res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
       return c
   witness = res.pos + 0.5 * res.depth * res.normal
   if wp.dot(n, witness - v0) < -1.0e-6 * scale:
@@ -250,9 +199,7 @@ def terrain_candidates(
   mode: int, band: float, spacing: float, tol: float, iterations: int, refine: int
 ) -> Candidates:
   """Contact candidates of geom B (posed in the terrain frame) against the terrain."""
-  cands = Candidates()
-  cands.n = 0
-  cands.cut = 0
+  cands = empty()
   lo = wp.vec3(0.0)
   hi = wp.vec3(0.0)
   for k in range(3):
@@ -359,34 +306,6 @@ def terrain_candidates(
   return cands
 
 
-@wp.func
-def choose(c: Candidates, max_contacts: int) -> vec_chosen:
-  """Candidates to write: the deepest, then each time the one farthest from those chosen
-  (-1 past the end)."""
-  out = vec_chosen()
-  for k in range(MAX_CONTACTS):
-    out[k] = -1
-  if c.n == 0:
-    return out
-  first = int(0)
-  for k in range(c.n):
-    if c.depth[k] > c.depth[first]:
-      first = k
-  out[0] = first
-  for j in range(1, wp.min(max_contacts, wp.min(c.n, MAX_CONTACTS))):
-    best = int(-1)
-    best_dist = float(-1.0)
-    for k in range(c.n):
-      nearest = float(1.0e30)
-      for i in range(j):
-        nearest = wp.min(nearest, wp.length(_row(c.pos, k) - _row(c.pos, out[i])))
-      if nearest > best_dist:
-        best = k
-        best_dist = nearest
-    out[j] = best
-  return out
-
-
 @wp.kernel(enable_backward=False)
 def hfield_narrowphase(
   # Model:
@@ -485,17 +404,10 @@ def hfield_narrowphase(
       if opt_warn_hfield:
         wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
                   "cells around its centre are used\n", g2, MAX_CELLS, worldid)
-    chosen = choose(cands, max_contacts)
-    for k in range(MAX_CONTACTS):
-      i = chosen[k]
-      if i < 0:
-        continue
-      normal = terrain.rot @ _row(cands.normal, i)
-      pos = terrain.pos + terrain.rot @ _row(cands.pos, i)
-      write_contact(
-        naconmax_in, k, band - cands.depth[i], pos - 0.5 * band * normal, make_frame(normal), margin, gap, condim,
-        friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
-        contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-        contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-        contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
-      )
+    write_candidates(
+      cands, max_contacts, terrain.rot, terrain.pos, band, naconmax_in, margin, gap, condim, friction, solref,
+      solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,
+      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+    )

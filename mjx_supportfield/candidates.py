@@ -1,0 +1,155 @@
+"""Contact candidates of one pair: several sources propose points, duplicates merge, and the
+deepest point plus the ones farthest from those chosen are written (heightfields, non-convex
+meshes)."""
+
+import warp as wp
+from mujoco_warp._src.collision_core import write_contact
+from mujoco_warp._src.math import make_frame
+from mujoco_warp._src.types import vec5
+
+NCANDIDATE = 16  # contact candidates kept per pair before the final choice
+MAX_CONTACTS = 8  # most contacts written per pair (Options.max_contacts_per_pair bounds it too)
+
+mat_cand = wp.types.matrix(shape=(NCANDIDATE, 3), dtype=float)
+vec_cand = wp.types.vector(length=NCANDIDATE, dtype=float)
+vec_chosen = wp.types.vector(length=MAX_CONTACTS, dtype=int)
+
+
+@wp.struct
+class Candidates:
+  """Contact candidates (depth includes the margin band; normals from geom 1 to geom 2)."""
+
+  n: int
+  pos: mat_cand
+  normal: mat_cand
+  depth: vec_cand
+  cut: int  # 1 when the source had to skip part of the work (the caller's overflow)
+
+
+@wp.func
+def empty() -> Candidates:
+  """No candidates."""
+  c = Candidates()
+  c.n = 0
+  c.cut = 0
+  return c
+
+
+@wp.func
+def row(m: mat_cand, k: int) -> wp.vec3:
+  """Row k of a candidate matrix as a vector."""
+  return wp.vec3(m[k, 0], m[k, 1], m[k, 2])
+
+
+@wp.func
+def _put(c: Candidates, k: int, pos: wp.vec3, normal: wp.vec3, depth: float) -> Candidates:
+  out = c
+  for i in range(3):
+    out.pos[k, i] = pos[i]
+    out.normal[k, i] = normal[i]
+  out.depth[k] = depth
+  return out
+
+
+@wp.func
+def add_candidate(c: Candidates, pos: wp.vec3, normal: wp.vec3, depth: float, spacing: float) -> Candidates:
+  """Adds a candidate: one within ``spacing`` of it keeps the deeper of the two; a full list
+  gives up its shallowest for a deeper one."""
+  for k in range(c.n):
+    if wp.length(row(c.pos, k) - pos) < spacing:
+      if depth > c.depth[k]:
+        return _put(c, k, pos, normal, depth)
+      return c
+  if c.n < NCANDIDATE:
+    out = _put(c, c.n, pos, normal, depth)
+    out.n = c.n + 1
+    return out
+  shallowest = int(0)
+  for k in range(NCANDIDATE):
+    if c.depth[k] < c.depth[shallowest]:
+      shallowest = k
+  if depth > c.depth[shallowest]:
+    return _put(c, shallowest, pos, normal, depth)
+  return c
+
+
+@wp.func
+def choose(c: Candidates, max_contacts: int) -> vec_chosen:
+  """Candidates to write: the deepest, then each time the one farthest from those chosen
+  (-1 past the end)."""
+  out = vec_chosen()
+  for k in range(MAX_CONTACTS):
+    out[k] = -1
+  if c.n == 0:
+    return out
+  first = int(0)
+  for k in range(c.n):
+    if c.depth[k] > c.depth[first]:
+      first = k
+  out[0] = first
+  for j in range(1, wp.min(max_contacts, wp.min(c.n, MAX_CONTACTS))):
+    best = int(-1)
+    best_dist = float(-1.0)
+    for k in range(c.n):
+      nearest = float(1.0e30)
+      for i in range(j):
+        nearest = wp.min(nearest, wp.length(row(c.pos, k) - row(c.pos, out[i])))
+      if nearest > best_dist:
+        best = k
+        best_dist = nearest
+    out[j] = best
+  return out
+
+
+@wp.func
+def write_candidates(
+  c: Candidates,
+  max_contacts: int,
+  rot: wp.mat33,
+  origin: wp.vec3,
+  band: float,
+  naconmax_in: int,
+  margin: float,
+  gap: float,
+  condim: int,
+  friction: vec5,
+  solref: wp.vec2,
+  solreffriction: wp.vec2,
+  solimp: vec5,
+  adhesion: float,
+  geoms: wp.vec2i,
+  pairid: wp.vec2i,
+  worldid: int,
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """Writes the chosen candidates (given in a frame: world = origin + rot @ local) as contacts
+  with MuJoCo Warp's write_contact; the margin band comes off the depth and the position."""
+  chosen = choose(c, max_contacts)
+  for k in range(MAX_CONTACTS):
+    i = chosen[k]
+    if i < 0:
+      continue
+    normal = rot @ row(c.normal, i)
+    pos = origin + rot @ row(c.pos, i)
+    write_contact(
+      naconmax_in, k, band - c.depth[i], pos - 0.5 * band * normal, make_frame(normal), margin, gap, condim,
+      friction, solref, solreffriction, solimp, adhesion, geoms, pairid, worldid, contact_dist_out,
+      contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+    )

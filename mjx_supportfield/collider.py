@@ -16,6 +16,7 @@ from mujoco_warp._src.types import OverflowType
 
 from mjx_supportfield import broadphase
 from mjx_supportfield import heightfield
+from mjx_supportfield import nonconvex
 from mjx_supportfield import narrowphase
 from mjx_supportfield import warmstart
 from mjx_supportfield.aabb import update_aabbs
@@ -108,12 +109,28 @@ class Collider:
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       nmpr = int(mpr_table[t1 * narrowphase.NGEOMTYPE + t2].sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
-      # hull SDFs for the fallback, for the meshes of geoms that meet another shape through MPR
+      # non-convex meshes: their own triangles' SDFs
+      ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
+      nonconvex.warn_open_meshes(mjm, ncgeoms)
+      flags = np.zeros(mjm.ngeom, np.int32)
+      flags[ncgeoms] = 1
+      self.geom_nonconvex = wp.array(flags, dtype=int)
+      self.has_nonconvex_pairs = bool(len(ncgeoms)) and bool(flags[pairs].any()) if len(pairs) else False
+      ncmeshes = {int(mjm.geom_dataid[g]) for g in ncgeoms}
+      self.mesh_faceadr = wp.array(np.asarray(mjm.mesh_faceadr, np.int32).reshape(-1), dtype=int)
+      self.mesh_facenum = wp.array(np.asarray(mjm.mesh_facenum, np.int32).reshape(-1), dtype=int)
+      self.sdfs = nonconvex.SdfSet()
+      self.sdfs.true_mesh = build_mesh_sdf(mjm, options.nonconvex_sdf_res, ncmeshes, device, nonconvex.mesh_triangles)
+      # hull SDFs: for the fallback of meshes that meet another shape through MPR, and for the
+      # convex meshes a non-convex one may touch
+      mesh_ids = {int(x) for x in np.asarray(mjm.geom_dataid)[np.asarray(mjm.geom_type) == GeomType.MESH] if x >= 0}
       meshes = set()
       if options.mpr_to_sdf_overlap_ratio > 0 and any(GeomType.MESH in t for t in self.mpr_types):
-        ids = np.asarray(mjm.geom_dataid)[np.asarray(mjm.geom_type) == GeomType.MESH]
-        meshes = {int(x) for x in ids if x >= 0}
+        meshes = set(mesh_ids)
+      if self.has_nonconvex_pairs:
+        meshes |= mesh_ids
       self.mesh_sdf = build_mesh_sdf(mjm, options.sdf_res, meshes, device)
+      self.sdfs.hull = self.mesh_sdf
 
   @staticmethod
   def _pair_types_present(mjm, pairs):
@@ -311,7 +328,7 @@ class Collider:
           self.options.mpr_refine, self.options.max_contacts_per_pair if self.options.multi_contact else 1,
           self.options.mc_perturbation, self.options.mc_tolerance, self.mesh_sdf,
           self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start, warm.stamp, warm.slot_stamp,
-          warm.slot_key, warm.slot_value,
+          warm.slot_key, warm.slot_value, self.geom_nonconvex,
         ] + pair_inputs,
         outputs=self._contact_outputs(d),
       )
@@ -330,6 +347,20 @@ class Collider:
           self.options.mc_tolerance,
         ] + pair_inputs,
         outputs=[d.overflow] + self._contact_outputs(d),
+      )
+    if self.has_nonconvex_pairs:
+      wp.launch(
+        nonconvex.nonconvex_narrowphase,
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.mesh_vertnum,
+          self.mesh_faceadr, self.mesh_facenum, m.mesh_face, m.pair_dim, m.pair_solref, m.pair_solreffriction,
+          m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat,
+          d.naconmax, self.mesh_support, self.geom_nonconvex, self.sdfs, SUPPORT_MODE_ID[self.options.support_mode],
+          self.options.max_contacts_per_pair, self.options.mc_tolerance,
+        ] + pair_inputs,
+        outputs=self._contact_outputs(d),
       )
     if self.has_stock_pairs:
       # SDF geoms and collision-sensor pairs: MuJoCo Warp's own narrow phase

@@ -267,6 +267,7 @@ def mpr_narrowphase(
   ws_slot_stamp: wp.array2d(dtype=int),
   ws_slot_key: wp.array2d(dtype=int),
   ws_slot_value: wp.array2d(dtype=wp.vec4),
+  geom_nonconvex: wp.array(dtype=int),
   npair_in: wp.array(dtype=int),
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
@@ -302,6 +303,8 @@ def mpr_narrowphase(
     g2 = geoms[1]
     if mpr_pair_type[geom_type[g1] * wp.static(NGEOMTYPE) + geom_type[g2]] == 0:
       continue
+    if geom_nonconvex[g1] or geom_nonconvex[g2]:
+      continue  # nonconvex.py
     worldid = pair_worldid_in[cid]
     _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
       geom_condim,

@@ -34,6 +34,10 @@ class Options:
     warm_start: MPR starts from each pair's contact normal of the previous collision call
       (kept per world and geom pair, dropped once the pair finds no contact); a warm start
       that finds no contact is retried cold.
+    nonconvex_geoms: names of mesh geoms collided through their true triangles (an SDF of
+      the mesh) instead of MuJoCo's convex hull; also read from the MJCF custom text
+      ``mjx_supportfield.nonconvex`` (names separated by spaces).
+    nonconvex_sdf_res: cells along the longest side of a non-convex mesh's baked SDF.
   """
 
   support_res: int = 180
@@ -50,6 +54,8 @@ class Options:
   mpr_to_sdf_overlap_ratio: float = 0.5
   sdf_res: int = 32
   warm_start: bool = True
+  nonconvex_geoms: tuple = ()
+  nonconvex_sdf_res: int = 64
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)
@@ -68,6 +74,11 @@ class Options:
     _check_float("mc_tolerance", self.mc_tolerance, 0.0, 0.5)
     _check_float("mpr_to_sdf_overlap_ratio", self.mpr_to_sdf_overlap_ratio, 0.0, 100.0)
     _check_int("sdf_res", self.sdf_res, 8, 256)
+    _check_int("nonconvex_sdf_res", self.nonconvex_sdf_res, 8, 512)
+    names = self.nonconvex_geoms
+    if isinstance(names, str) or not isinstance(names, (tuple, list)) or not all(isinstance(n, str) for n in names):
+      raise ValueError(f"Options.nonconvex_geoms: expected a list of geom names, got {names!r}")
+    object.__setattr__(self, "nonconvex_geoms", tuple(names))
 
   @classmethod
   def from_dict(cls, values: dict) -> "Options":

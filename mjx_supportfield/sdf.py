@@ -83,12 +83,13 @@ def bake_mesh(verts: np.ndarray, tris: np.ndarray, sdf_res: int, device=None):
   return values, res, lo, cell
 
 
-def build_mesh_sdf(mjm: mujoco.MjModel, sdf_res: int, meshes, device=None) -> MeshSdf:
-  """Bakes the hull SDF of each mesh id in ``meshes`` (the others get none)."""
+def build_mesh_sdf(mjm: mujoco.MjModel, sdf_res: int, meshes, device=None, triangles=hull_triangles) -> MeshSdf:
+  """Bakes the SDF of each mesh id in ``meshes`` (the others get none): of its hull, or of the
+  surface ``triangles(mjm, meshid)`` gives."""
   adr, res, lo, cell, values = [], [], [], [], []
   total = 0
   for meshid in range(mjm.nmesh):
-    tris = hull_triangles(mjm, meshid) if meshid in meshes else np.zeros((0, 3), np.int32)
+    tris = triangles(mjm, meshid) if meshid in meshes else np.zeros((0, 3), np.int32)
     if len(tris) == 0:
       adr.append(0)
       res.append((0, 0, 0))

@@ -317,7 +317,7 @@ class Collider:
       if self.options.warm_start:
         wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp])
       wp.launch(
-        narrowphase.mpr_narrowphase,
+        narrowphase.convex_kernel(self.options.narrowphase == "gjk"),
         dim=nthread,
         inputs=[
           m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,

@@ -16,6 +16,7 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
 from mjx_supportfield import warmstart
+from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import mpr_refined
@@ -221,203 +222,213 @@ def posed_shape(
   return s
 
 
-@wp.kernel(enable_backward=False)
-def mpr_narrowphase(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_condim: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_priority: wp.array(dtype=int),
-  geom_solmix: wp.array2d(dtype=float),
-  geom_solref: wp.array2d(dtype=wp.vec2),
-  geom_solimp: wp.array2d(dtype=vec5),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_friction: wp.array2d(dtype=wp.vec3),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  geom_adhesion: wp.array2d(dtype=float),
-  geom_aabb: wp.array3d(dtype=wp.vec3),
-  pair_dim: wp.array(dtype=int),
-  pair_solref: wp.array2d(dtype=wp.vec2),
-  pair_solreffriction: wp.array2d(dtype=wp.vec2),
-  pair_solimp: wp.array2d(dtype=vec5),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  pair_adhesion: wp.array2d(dtype=float),
-  pair_friction: wp.array2d(dtype=vec5),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  naconmax_in: int,
-  # In:
-  ms: MeshSupport,
-  mpr_pair_type: wp.array(dtype=int),
-  support_mode: int,
-  tolerance: float,
-  iterations: int,
-  refine: int,
-  max_contacts: int,
-  mc_perturbation: float,
-  mc_tolerance: float,
-  sdf: MeshSdf,
-  sdf_ratio: float,
-  warm_start: int,
-  ws_stamp: wp.array(dtype=int),
-  ws_slot_stamp: wp.array2d(dtype=int),
-  ws_slot_key: wp.array2d(dtype=int),
-  ws_slot_value: wp.array2d(dtype=wp.vec4),
-  geom_nonconvex: wp.array(dtype=int),
-  npair_in: wp.array(dtype=int),
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  nthread: int,
-  # Data out:
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
-):
-  """Contacts of convex pairs by MPR on the shapes' support functions: the deepest point, then
-  up to max_contacts - 1 more by pose perturbation (not for spheres and ellipsoids, where
-  one point is the whole contact). With warm_start, MPR starts from the pair's normal of the
-  previous call and falls back to a cold start when that misses."""
-  tid = wp.tid()
-  now = ws_stamp[0]
-  for cid in range(tid, npair_in[0], nthread):
-    geoms = pair_in[cid]
-    g1 = geoms[0]
-    g2 = geoms[1]
-    if mpr_pair_type[geom_type[g1] * wp.static(NGEOMTYPE) + geom_type[g2]] == 0:
-      continue
-    if geom_nonconvex[g1] or geom_nonconvex[g2]:
-      continue  # nonconvex.py
-    worldid = pair_worldid_in[cid]
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-      geom_condim,
-      geom_priority,
-      geom_solmix,
-      geom_solref,
-      geom_solimp,
-      geom_friction,
-      geom_margin,
-      geom_gap,
-      geom_adhesion,
-      pair_dim,
-      pair_solref,
-      pair_solreffriction,
-      pair_solimp,
-      pair_margin,
-      pair_gap,
-      pair_adhesion,
-      pair_friction,
-      pair_in,
-      pairid_in,
-      cid,
-      worldid,
-    )
-    a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
-    b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
-    # contacts are wanted up to margin + gap apart: grow A by that band, shrink the answer back
-    band = wp.max(margin + gap, 0.0)
-    a.inflate = band
-    rb = worldid % geom_rbound.shape[0]
-    scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
-    key = g1 * geom_type.shape[0] + g2
-    res = MprResult()
-    res.hit = 0
-    if warm_start:
-      last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
-      if last[3] > 0.0:
-        q0 = behind_origin(wp.vec3(last[0], last[1], last[2]), last[3], scale)
-        res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
-    if res.hit == 0:
-      res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
-    if res.hit == 0:
-      continue
-    extra = Patch()
-    extra.n = 0
-    # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding
-    # diameter): MPR's portal face need not be the nearest; the SDFs know the nearest surface
-    if needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
-      bare = a  # the SDFs measure the true surfaces; A keeps its margin band for multi-contact
-      bare.inflate = 0.0
-      fallback = sdf_contact(bare, b, ms, sdf, support_mode, 1.0e-4 * scale)
-      if fallback.hit and fallback.depth + band < res.depth:
-        res.depth = fallback.depth + band
-        res.normal = fallback.normal
-        res.pos = fallback.pos + 0.5 * band * fallback.normal
-        extra.n = -1  # a fallback contact is not perturbed
-    if warm_start:
-      value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
-      warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
-    frame = make_frame(res.normal)
-    one_point = (
-      geom_type[g1] == GeomType.SPHERE
-      or geom_type[g1] == GeomType.ELLIPSOID
-      or geom_type[g2] == GeomType.SPHERE
-      or geom_type[g2] == GeomType.ELLIPSOID
-    )
-    # duplicates: closer than mc_tolerance x the smaller geom's box size
-    ab = worldid % geom_aabb.shape[0]
-    size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
-    if max_contacts > 1 and not one_point and extra.n == 0:
-      extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
-                                 mc_tolerance * size)
-    # contact list: MPR's point (index -1) when it is kept, then the patch's points
-    first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, mc_tolerance * size, tolerance * scale), -1, 0), -1)
-    count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
-    for k in range(count):
-      j = first + k
-      depth = res.depth
-      pos = res.pos
-      if j >= 0:
-        depth = extra.depth[j]
-        pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
-      write_contact(
-        naconmax_in,
-        k,
-        band - depth,
-        pos - 0.5 * band * res.normal,
-        frame,
-        margin,
-        gap,
-        condim,
-        friction,
-        solref,
-        solreffriction,
-        solimp,
-        adhesion,
-        geoms,
-        pairid_in[cid],
+@functools.lru_cache(maxsize=None)
+def convex_kernel(use_gjk: bool):
+  """The narrow-phase kernel of the convex pairs that are not analytic: penetration by MPR
+  (warm-started, refined) or, with ``use_gjk``, by GJK/EPA (gjk.py)."""
+
+  @wp.kernel(module="unique", enable_backward=False)
+  def convex_narrowphase(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_condim: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_priority: wp.array(dtype=int),
+    geom_solmix: wp.array2d(dtype=float),
+    geom_solref: wp.array2d(dtype=wp.vec2),
+    geom_solimp: wp.array2d(dtype=vec5),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_friction: wp.array2d(dtype=wp.vec3),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    geom_adhesion: wp.array2d(dtype=float),
+    geom_aabb: wp.array3d(dtype=wp.vec3),
+    pair_dim: wp.array(dtype=int),
+    pair_solref: wp.array2d(dtype=wp.vec2),
+    pair_solreffriction: wp.array2d(dtype=wp.vec2),
+    pair_solimp: wp.array2d(dtype=vec5),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    pair_adhesion: wp.array2d(dtype=float),
+    pair_friction: wp.array2d(dtype=vec5),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    naconmax_in: int,
+    # In:
+    ms: MeshSupport,
+    mpr_pair_type: wp.array(dtype=int),
+    support_mode: int,
+    tolerance: float,
+    iterations: int,
+    refine: int,
+    max_contacts: int,
+    mc_perturbation: float,
+    mc_tolerance: float,
+    sdf: MeshSdf,
+    sdf_ratio: float,
+    warm_start: int,
+    ws_stamp: wp.array(dtype=int),
+    ws_slot_stamp: wp.array2d(dtype=int),
+    ws_slot_key: wp.array2d(dtype=int),
+    ws_slot_value: wp.array2d(dtype=wp.vec4),
+    geom_nonconvex: wp.array(dtype=int),
+    npair_in: wp.array(dtype=int),
+    pair_in: wp.array(dtype=wp.vec2i),
+    pairid_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    nthread: int,
+    # Data out:
+    contact_dist_out: wp.array(dtype=float),
+    contact_pos_out: wp.array(dtype=wp.vec3),
+    contact_frame_out: wp.array(dtype=wp.mat33),
+    contact_includemargin_out: wp.array(dtype=float),
+    contact_friction_out: wp.array(dtype=vec5),
+    contact_solref_out: wp.array(dtype=wp.vec2),
+    contact_solreffriction_out: wp.array(dtype=wp.vec2),
+    contact_solimp_out: wp.array(dtype=vec5),
+    contact_dim_out: wp.array(dtype=int),
+    contact_geom_out: wp.array(dtype=wp.vec2i),
+    contact_efc_address_out: wp.array2d(dtype=int),
+    contact_worldid_out: wp.array(dtype=int),
+    contact_type_out: wp.array(dtype=int),
+    contact_geomcollisionid_out: wp.array(dtype=int),
+    contact_adhesion_out: wp.array(dtype=float),
+    nacon_out: wp.array(dtype=int),
+  ):
+    """Contacts of convex pairs by MPR (or GJK/EPA) on the shapes' support functions: the
+    deepest point, then up to max_contacts - 1 more by pose perturbation (not for spheres and
+    ellipsoids, where one point is the whole contact). With warm_start, MPR starts from the
+    pair's normal of the previous call and falls back to a cold start when that misses."""
+    tid = wp.tid()
+    now = ws_stamp[0]
+    for cid in range(tid, npair_in[0], nthread):
+      geoms = pair_in[cid]
+      g1 = geoms[0]
+      g2 = geoms[1]
+      if mpr_pair_type[geom_type[g1] * wp.static(NGEOMTYPE) + geom_type[g2]] == 0:
+        continue
+      if geom_nonconvex[g1] or geom_nonconvex[g2]:
+        continue  # nonconvex.py
+      worldid = pair_worldid_in[cid]
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+        geom_condim,
+        geom_priority,
+        geom_solmix,
+        geom_solref,
+        geom_solimp,
+        geom_friction,
+        geom_margin,
+        geom_gap,
+        geom_adhesion,
+        pair_dim,
+        pair_solref,
+        pair_solreffriction,
+        pair_solimp,
+        pair_margin,
+        pair_gap,
+        pair_adhesion,
+        pair_friction,
+        pair_in,
+        pairid_in,
+        cid,
         worldid,
-        contact_dist_out,
-        contact_pos_out,
-        contact_frame_out,
-        contact_includemargin_out,
-        contact_friction_out,
-        contact_solref_out,
-        contact_solreffriction_out,
-        contact_solimp_out,
-        contact_dim_out,
-        contact_geom_out,
-        contact_efc_address_out,
-        contact_worldid_out,
-        contact_type_out,
-        contact_geomcollisionid_out,
-        contact_adhesion_out,
-        nacon_out,
       )
+      a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
+      b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
+      # contacts are wanted up to margin + gap apart: grow A by that band, shrink the answer back
+      band = wp.max(margin + gap, 0.0)
+      a.inflate = band
+      rb = worldid % geom_rbound.shape[0]
+      scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
+      key = g1 * geom_type.shape[0] + g2
+      res = MprResult()
+      res.hit = 0
+      if wp.static(use_gjk):
+        res = gjk_epa(a, b, ms, support_mode, scale, tolerance, iterations)
+      else:
+        if warm_start:
+          last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
+          if last[3] > 0.0:
+            q0 = behind_origin(wp.vec3(last[0], last[1], last[2]), last[3], scale)
+            res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
+        if res.hit == 0:
+          res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
+      if res.hit == 0:
+        continue
+      extra = Patch()
+      extra.n = 0
+      # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding
+      # diameter): MPR's portal face need not be the nearest; the SDFs know the nearest surface
+      if needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
+        bare = a  # the SDFs measure the true surfaces; A keeps its margin band for multi-contact
+        bare.inflate = 0.0
+        fallback = sdf_contact(bare, b, ms, sdf, support_mode, 1.0e-4 * scale)
+        if fallback.hit and fallback.depth + band < res.depth:
+          res.depth = fallback.depth + band
+          res.normal = fallback.normal
+          res.pos = fallback.pos + 0.5 * band * fallback.normal
+          extra.n = -1  # a fallback contact is not perturbed
+      if warm_start and not wp.static(use_gjk):
+        value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+        warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
+      frame = make_frame(res.normal)
+      one_point = (
+        geom_type[g1] == GeomType.SPHERE
+        or geom_type[g1] == GeomType.ELLIPSOID
+        or geom_type[g2] == GeomType.SPHERE
+        or geom_type[g2] == GeomType.ELLIPSOID
+      )
+      # duplicates: closer than mc_tolerance x the smaller geom's box size
+      ab = worldid % geom_aabb.shape[0]
+      size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
+      if max_contacts > 1 and not one_point and extra.n == 0:
+        extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
+                                   mc_tolerance * size)
+      # contact list: MPR's point (index -1) when it is kept, then the patch's points
+      first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, mc_tolerance * size, tolerance * scale), -1, 0), -1)
+      count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
+      for k in range(count):
+        j = first + k
+        depth = res.depth
+        pos = res.pos
+        if j >= 0:
+          depth = extra.depth[j]
+          pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
+        write_contact(
+          naconmax_in,
+          k,
+          band - depth,
+          pos - 0.5 * band * res.normal,
+          frame,
+          margin,
+          gap,
+          condim,
+          friction,
+          solref,
+          solreffriction,
+          solimp,
+          adhesion,
+          geoms,
+          pairid_in[cid],
+          worldid,
+          contact_dist_out,
+          contact_pos_out,
+          contact_frame_out,
+          contact_includemargin_out,
+          contact_friction_out,
+          contact_solref_out,
+          contact_solreffriction_out,
+          contact_solimp_out,
+          contact_dim_out,
+          contact_geom_out,
+          contact_efc_address_out,
+          contact_worldid_out,
+          contact_type_out,
+          contact_geomcollisionid_out,
+          contact_adhesion_out,
+          nacon_out,
+        )
+
+  return convex_narrowphase

@@ -4,6 +4,7 @@ import dataclasses
 import math
 
 SUPPORT_MODES = ("field", "refined", "exact")
+NARROWPHASES = ("mpr", "gjk")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -17,7 +18,9 @@ class Options:
       (exhaustive scan of the hull vertices).
     max_collision_pairs: broad-phase pair budget per world; pairs beyond it are dropped,
       counted and reported through ``d.overflow`` (``OverflowType.BROADPHASE``).
-    mpr_iterations: iteration cap of each MPR loop (portal discovery and refinement).
+    narrowphase: penetration of the convex pairs that are not analytic: "mpr" (MPR, refined
+      along its normal, warm-started) or "gjk" (GJK distance, EPA for overlapping cores).
+    mpr_iterations: iteration cap of each MPR (or GJK / EPA) loop.
     mpr_tolerance: MPR convergence tolerance, relative to the pair's size.
     mpr_refine: MPR reruns along the last normal (the shallowest answer wins); 0 = plain MPR,
       which reports the penetration along the centre-to-centre line.
@@ -43,6 +46,7 @@ class Options:
   support_res: int = 180
   support_mode: str = "refined"
   max_collision_pairs: int = 4096
+  narrowphase: str = "mpr"
   mpr_iterations: int = 50
   mpr_tolerance: float = 1e-6
   mpr_refine: int = 4
@@ -62,6 +66,8 @@ class Options:
     if self.support_mode not in SUPPORT_MODES:
       raise ValueError(f"Options.support_mode: {self.support_mode!r} is not one of {', '.join(SUPPORT_MODES)}")
     _check_int("max_collision_pairs", self.max_collision_pairs, 1, 1 << 24)
+    if self.narrowphase not in NARROWPHASES:
+      raise ValueError(f"Options.narrowphase: {self.narrowphase!r} is not one of {', '.join(NARROWPHASES)}")
     _check_int("mpr_iterations", self.mpr_iterations, 1, 10_000)
     _check_float("mpr_tolerance", self.mpr_tolerance, 1e-12, 1e-2)
     _check_int("mpr_refine", self.mpr_refine, 0, 32)

@@ -6,6 +6,7 @@ All pairs of all tests go through one kernel (one compile): each case is written
 unit-size pair frame, scaled, and moved by a random rotation and translation.
 """
 
+import os
 import zlib
 
 import mujoco
@@ -14,10 +15,16 @@ import pytest
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
+from conftest import MODELS
 from conftest import angle_deg
 from conftest import random_quat
+from mjx_supportfield import Options
 from mjx_supportfield import gjk
 from mjx_supportfield import support_field
+from mjx_supportfield.compare import match
+from mjx_supportfield.compare import mujoco_contacts
+from mjx_supportfield.compare import sample_states
+from mjx_supportfield.compare import warp_contacts
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
@@ -500,3 +507,20 @@ def test_few_iterations(pairs, results, iterations):
         assert row[SEP] == 1 and row[DIST] >= full[DIST] - tol, f"{where}: distance {row[DIST]}, converged {full[DIST]}"
       if row[HIT]:
         assert row[DEPTH] <= full[DEPTH] + tol, f"{where}: depth {row[DEPTH]}, converged {full[DEPTH]}"
+
+
+def test_gjk_narrowphase_in_the_pipeline():
+  """Options(narrowphase="gjk") on convex_pile: every pair MuJoCo C finds, the same depths and normals."""
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(MODELS, "convex_pile.xml"))
+  states = sample_states(mjm, 200, 3)
+  worlds = warp_contacts(mjm, states, len(states), Options(narrowphase="gjk"))
+  size = 2.0 * mjm.geom_rbound
+  rows = []
+  for q, got in zip(states, worlds):
+    m = match(mujoco_contacts(mjm, q), got, 5e-4, size)
+    assert not m["missed"], m["missed"]
+    rows += m["rows"]
+  assert len(rows) >= 15
+  assert np.median([r["normal_angle_deg"] for r in rows]) < 0.1
+  assert np.median([r["depth_error"] for r in rows]) < 1e-6
+  assert max(r["depth_error"] for r in rows) < 1e-4

@@ -78,6 +78,7 @@ def main(argv=None):
   p.add_argument("--nworld", type=int, nargs="*", help="override every scene's nworld list")
   p.add_argument("--launches", type=int, default=100)
   p.add_argument("--out", default=os.path.join(HERE, "results"))
+  p.add_argument("--suffix", default="", help="appended to the results' file names (runs split over calls)")
   args = p.parse_args(argv)
   wp.config.log_level = wp.LOG_WARNING
   names = args.only or list(SCENES)
@@ -95,7 +96,7 @@ def main(argv=None):
     print(f"\n{bench.format_table([r for r in rows if r.scene == bench.scene_name(path)])}", flush=True)
 
   gpu = bench.device_name()
-  stem = os.path.join(args.out, f"{datetime.date.today()}-{gpu.split()[-1].lower()}")
+  stem = os.path.join(args.out, f"{datetime.date.today()}-{gpu.split()[-1].lower()}{args.suffix}")
   bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling})
   try:
     bench.plot([r.__dict__ for r in rows], stem + ".png")

@@ -1,7 +1,12 @@
 """Per-kernel GPU time of one collision call, plugin and stock (Warp's CUDA activity timing).
 
-  python benchmarks/profile_collision.py SCENE.xml [--nworld 8192] [--settle 200]
+  python benchmarks/profile_collision.py SCENE.xml [--nworld 8192] [--settle 200] [--variants V,V,...]
+
+A variant is ``default`` or Options fields as ``key=value;key=value`` (Python literals), e.g.
+``multi_contact=False;mpr_refine=0``.
 """
+
+import ast
 
 import argparse
 import collections
@@ -21,7 +26,7 @@ def main():
   p.add_argument("--nworld", type=int, default=8192)
   p.add_argument("--settle", type=int, default=200)
   p.add_argument("--repeats", type=int, default=5)
-  p.add_argument("--variants", default="refined:4", help="plugin variants support_mode:mpr_refine, comma-separated")
+  p.add_argument("--variants", default="default", help="plugin variants (see above), comma-separated")
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
   mjm = mujoco.MjModel.from_xml_path(args.model)
@@ -30,8 +35,8 @@ def main():
   for impl in ["stock"] + args.variants.split(","):
     m = mjw.put_model(mjm)
     if impl != "stock":
-      mode, refine = impl.split(":")
-      install(mjm, m, Options(support_mode=mode, mpr_refine=int(refine)))
+      fields = dict(kv.split("=", 1) for kv in impl.split(";") if kv != "default")
+      install(mjm, m, Options(**{k: ast.literal_eval(v) for k, v in fields.items()}))
     d = mjw.put_data(mjm, mjd, nworld=args.nworld, nconmax=ncon, njmax=6 * ncon + mjd.nefc)
     mjw.forward(m, d)
     mjw.collision(m, d)

@@ -8,14 +8,21 @@ point is kept when it still penetrates along n and is not a duplicate of one alr
 
 import warp as wp
 from mujoco_warp._src.math import make_frame
+from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import Vertex
 from mjx_supportfield.mpr import mpr
+from mjx_supportfield.support import count_supports
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
 NPERTURB = 4  # tilts: +-eps about each diagonal of the contact plane
+# a tilted MPR starts next to its answer: it needs few iterations, and its point only has to
+# land on the right corner of the patch (its depth is measured again in the true pose). At the
+# main MPR's tolerance, float32 noise of the tilted poses kept it iterating to the cap.
+TILT_TOL = 1.0e-6
+TILT_ITERATIONS = 16
 
 mat43 = wp.types.matrix(shape=(4, 3), dtype=float)
 
@@ -36,6 +43,33 @@ def _tilted(a: Shape, pivot: wp.vec3, rot: wp.mat33) -> Shape:
   out.pos = pivot + rot @ (a.pos - pivot)
   out.center = pivot + rot @ (a.center - pivot)
   return out
+
+
+@wp.func
+def _ties(s: Shape, ms: MeshSupport, d_world: wp.vec3, rtol: float) -> int:
+  """How many support points a shape has in direction d within rtol of its extent: 1 for a
+  point, 2 for an edge or a line, 3 for a face (or more, counted, for boxes and meshes)."""
+  d = wp.normalize(wp.transpose(s.rot) @ d_world)
+  if s.gtype == GeomType.BOX or s.gtype == GeomType.MESH:
+    return count_supports(s.gtype, s.size, s.mesh, ms, d, rtol)
+  if s.gtype == GeomType.CYLINDER:
+    extent = wp.length(wp.vec2(s.size[0], s.size[1]))
+    if wp.sqrt(wp.max(1.0 - d[2] * d[2], 0.0)) * s.size[0] <= rtol * extent:
+      return 3  # an end disk
+    if wp.abs(d[2]) * s.size[1] <= rtol * extent:
+      return 2  # a line of the side
+  if s.gtype == GeomType.CAPSULE:
+    if wp.abs(d[2]) * s.size[1] <= rtol * (s.size[0] + s.size[1]):
+      return 2
+  return 1
+
+
+@wp.func
+def patch_possible(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, eps: float) -> bool:
+  """Whether tilting by eps can find more points: a tilt brings in a point only if it is within
+  eps x the shape's extent of the deepest along the normal, so both shapes must offer at least
+  an edge there (face-face, face-edge, parallel edges). Vertex contacts skip the 4 tilted MPRs."""
+  return _ties(a, ms, normal, eps) >= 2 and _ties(b, ms, -normal, eps) >= 2
 
 
 @wp.func
@@ -75,7 +109,7 @@ def perturbed_contacts(
     # warm start: look along the first normal, from just behind the origin
     q0 = Vertex()
     q0.v = -0.5 * wp.max(first.depth, 1.0e-6 * scale) * n
-    r = mpr(tilted, b, ms, mode, q0, scale, tol, iterations)
+    r = mpr(tilted, b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
     if r.hit == 0:
       continue
     # witness points in the tilted pose (pa - pb = depth * normal); A's rotates back with A

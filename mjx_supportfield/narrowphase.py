@@ -19,10 +19,11 @@ from mjx_supportfield import warmstart
 from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import behind_origin
-from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
 from mjx_supportfield.multicontact import Patch
 from mjx_supportfield.multicontact import keep_first
+from mjx_supportfield.multicontact import patch_possible
 from mjx_supportfield.multicontact import perturbed_contacts
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import needs_sdf
@@ -348,13 +349,18 @@ def convex_kernel(use_gjk: bool):
       if wp.static(use_gjk):
         res = gjk_epa(a, b, ms, support_mode, scale, tolerance, iterations)
       else:
+        last = wp.vec4(0.0)
         if warm_start:
           last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
-          if last[3] > 0.0:
+        # one MPR call site, in a loop, keeps the kernel small: warm first when the pair has a
+        # normal from the previous call, then cold if that found nothing
+        for attempt in range(2):
+          if attempt == 1 and (res.hit != 0 or last[3] <= 0.0):
+            break
+          q0 = interior_point(a, b, scale)
+          if attempt == 0 and last[3] > 0.0:
             q0 = behind_origin(wp.vec3(last[0], last[1], last[2]), last[3], scale)
-            res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
-        if res.hit == 0:
-          res = mpr_refined(a, b, ms, support_mode, scale, tolerance, iterations, refine)
+          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
       if res.hit == 0:
         continue
       extra = Patch()
@@ -383,7 +389,7 @@ def convex_kernel(use_gjk: bool):
       # duplicates: closer than mc_tolerance x the smaller geom's box size
       ab = worldid % geom_aabb.shape[0]
       size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
-      if max_contacts > 1 and not one_point and extra.n == 0:
+      if max_contacts > 1 and not one_point and extra.n == 0 and patch_possible(a, b, ms, res.normal, mc_perturbation):
         extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
                                    mc_tolerance * size)
       # contact list: MPR's point (index -1) when it is kept, then the patch's points

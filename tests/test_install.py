@@ -177,7 +177,10 @@ def test_two_data_alternately(pile_installed):
   fresh.qpos.assign(d1.qpos.numpy())
   mjw.kinematics(m, fresh)
   sf.collision(m, fresh)
-  assert contact_records(fresh) == contact_records(d1)
+  # d1's MPR was warm-started by its previous calls, fresh's was not: equal up to float noise
+  got, want = contact_records(fresh), contact_records(d1)
+  assert [r[:3] for r in got] == [r[:3] for r in want]
+  np.testing.assert_allclose([r[3:] for r in got], [r[3:] for r in want], atol=1e-6)
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="CUDA graph capture needs a CUDA device")

@@ -9,12 +9,14 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src import collision_driver
 from mujoco_warp._src.collision_core import CollisionContext
+from mujoco_warp._src.types import DeterminismType
 from mujoco_warp._src.types import DisableBit
 from mujoco_warp._src.types import EnableBit
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
 from mjx_supportfield import broadphase
+from mjx_supportfield import contact_sort
 from mjx_supportfield import heightfield
 from mjx_supportfield import nonconvex
 from mjx_supportfield import narrowphase
@@ -56,6 +58,7 @@ class DataState:
   capacity: int
   warm: warmstart.WarmCache
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
+  sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
 
 def _check_heightfields(mjm: mujoco.MjModel) -> None:
@@ -227,6 +230,10 @@ class Collider:
 
     if m.nflex > 0 and not incremental:
       collision_driver.flex_collision(m, d, st.stock_ctx)
+    if m.opt.deterministic & DeterminismType.CONTACTS:
+      if st.sort is None:
+        st.sort = contact_sort.make_buffers(d, self.ngeom)
+      contact_sort.sort_contacts(d, st.sort, self.ngeom)
     if m.flg_surfacevel:
       wp.launch(
         collision_driver._contact_surfacevel,
@@ -372,14 +379,18 @@ class Collider:
     """Host-side counters of the last collision on ``d`` (reads the device: not for graphs).
 
     With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
+    ``dropped_contacts`` counts the contacts beyond ``d.naconmax`` (all worlds together).
     """
     states = getattr(d, _STATE_ATTR, None)
     st = states.get(self) if states is not None else None
     if st is None:
-      return {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": []}
+      return {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
+              "dropped_contacts": 0}
     return {
       "pairs": int(st.npair.numpy()[0]),
       "pairs_per_world": np.minimum(st.world_npair.numpy(), self.max_pairs).tolist(),
       "dropped_pairs_per_world": st.ndropped.numpy().tolist(),
       "nonfinite_worlds": np.nonzero(st.nonfinite.numpy())[0].tolist(),
+      # contacts found beyond d.naconmax (not stored; mjw.step flags OverflowType.NARROWPHASE)
+      "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
     }

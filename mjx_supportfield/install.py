@@ -4,14 +4,20 @@ from typing import Optional
 
 import mujoco
 import mujoco_warp as mjw
+import numpy as np
 import warp as wp
 from mujoco_warp._src import collision_driver
+from mujoco_warp._src import io as mjw_io
 
+from mjx_supportfield import warmstart
 from mjx_supportfield.collider import _ATTR
+from mjx_supportfield.collider import _STATE_ATTR
 from mjx_supportfield.collider import Collider
 from mjx_supportfield.options import Options
+from mjx_supportfield.types import CONVEX_TYPES
 
 _STOCK_COLLISION = collision_driver.collision
+_STOCK_RESET = mjw_io.reset_data
 
 
 def _dispatch(m, d, awake_prev: Optional[wp.array] = None):
@@ -22,10 +28,64 @@ def _dispatch(m, d, awake_prev: Optional[wp.array] = None):
   return collider.collision(m, d, awake_prev)
 
 
+def _geom_name(mjm: mujoco.MjModel, g: int) -> str:
+  return mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom {g}"
+
+
+def _check_values(mjm: mujoco.MjModel, m) -> None:
+  """Values the plugin's kernels read must be finite, and primitive sizes non-negative (the
+  compiler checks this, but a model can be edited after compiling, per world too)."""
+  if mjm.ngeom == 0:
+    return
+  convex = np.isin(np.asarray(mjm.geom_type), [int(t) for t in CONVEX_TYPES])
+  for field, geoms in (("geom_margin", None), ("geom_gap", None), ("geom_size", convex), ("geom_aabb", convex),
+                       ("geom_rbound", convex)):
+    values = getattr(m, field).numpy()
+    values = values.reshape(values.shape[0], mjm.ngeom, -1)  # (worlds batched, ngeom, values)
+    bad = ~np.isfinite(values).all(axis=(0, 2))
+    if field == "geom_size":
+      bad |= (values < 0).any(axis=(0, 2))
+    if geoms is not None:
+      bad &= geoms
+    if bad.any():
+      g = int(np.nonzero(bad)[0][0])
+      raise ValueError(f"install: geom '{_geom_name(mjm, g)}': {field} is {values[:, g].tolist()}; expected finite"
+                       " values (sizes >= 0)")
+  vert = m.mesh_vert.numpy()
+  if m.nmesh and not np.isfinite(vert).all():
+    meshid = int(np.searchsorted(np.asarray(mjm.mesh_vertadr), np.nonzero(~np.isfinite(vert).all(axis=1))[0][0],
+                                 side="right") - 1)
+    name = mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_MESH, meshid) or f"mesh {meshid}"
+    raise ValueError(f"install: mesh '{name}': mesh_vert holds non-finite values")
+
+
+def _reset_data(m, d, reset: Optional[wp.array] = None):
+  """Stand-in for MuJoCo Warp's reset_data(): also drops the plugin's history of the reset worlds
+  (warm-start normals, sweep-and-prune order), so a reset world repeats its run bit for bit."""
+  _STOCK_RESET(m, d, reset)
+  states = getattr(d, _STATE_ATTR, None)
+  if not states:
+    return
+  if reset is not None and reset.dtype != wp.bool:
+    mask = wp.empty(d.nworld, dtype=bool, device=reset.device)
+    wp.utils.array_cast(reset, mask)
+    reset = mask
+  for st in list(states.values()):
+    if reset is None:
+      st.sap_init.zero_()
+      st.warm.slot_stamp.fill_(warmstart.NEVER)
+    else:
+      wp.launch(warmstart.forget_worlds, dim=st.warm.slot_stamp.shape, inputs=[reset],
+                outputs=[st.sap_init, st.warm.slot_stamp], device=st.sap_init.device)
+
+
 def _patch():
   # forward.fwd_position calls collision_driver.collision through the module attribute
   collision_driver.collision = _dispatch
   mjw.collision = _dispatch
+  # reset_data_keyframe calls io.reset_data through the module attribute too
+  mjw_io.reset_data = _reset_data
+  mjw.reset_data = _reset_data
 
 
 def install(mjm: mujoco.MjModel, m, options: Optional[Options] = None) -> Collider:
@@ -41,7 +101,8 @@ def install(mjm: mujoco.MjModel, m, options: Optional[Options] = None) -> Collid
 
   Raises:
     TypeError: arguments of the wrong type.
-    ValueError: the models do not match, or the plugin is already installed on ``m``.
+    ValueError: the models do not match, the plugin is already installed on ``m``, or a geom's
+      size, margin, gap or bounds (or a mesh vertex) is not finite, or a primitive's size negative.
   """
   if not isinstance(mjm, mujoco.MjModel):
     raise TypeError(f"install: mjm must be a mujoco.MjModel, got {type(mjm).__name__}")
@@ -60,6 +121,7 @@ def install(mjm: mujoco.MjModel, m, options: Optional[Options] = None) -> Collid
     )
   if getattr(m, _ATTR, None) is not None:
     raise ValueError("install: the plugin is already installed on this model; call uninstall(m) first")
+  _check_values(mjm, m)
   collider = Collider(mjm, m, options)
   object.__setattr__(m, _ATTR, collider)
   _patch()

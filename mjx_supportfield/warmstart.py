@@ -100,3 +100,15 @@ def insert(
         slot_value[worldid, s] = value
         return
     s = (s + 1) & (nslot - 1)
+
+
+@wp.kernel(enable_backward=False)
+def forget_worlds(reset: wp.array(dtype=bool), sap_init: wp.array(dtype=int), slot_stamp: wp.array2d(dtype=int)):
+  """Drops the history of the worlds ``reset`` marks: their cached normals and their saved
+  sweep-and-prune order (rebuilt from scratch on the next call), as for a fresh Data."""
+  worldid, slot = wp.tid()
+  if not reset[worldid]:
+    return
+  if slot == 0:
+    sap_init[worldid] = 0
+  slot_stamp[worldid, slot] = NEVER

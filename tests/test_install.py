@@ -167,20 +167,20 @@ def test_two_data_alternately(pile_installed):
   assert len(s1["pairs_per_world"]) == 1 and len(s3["pairs_per_world"]) == 3
   assert s3["pairs_per_world"] == s1["pairs_per_world"] * 3
   assert s3["pairs"] == 3 * s1["pairs"]
-  # collision only, alternating again, against fresh Data
+  # collision only, alternating again, against a fresh Data given d1's calls alone (MPR is
+  # warm-started from each Data's own last call, so the same history gives the same bits)
   mjw.kinematics(m, d1)
   mjw.kinematics(m, d3)
   sf.collision(m, d1)
   sf.collision(m, d3)
   sf.collision(m, d1)
   fresh = mjw.put_data(sim.mjm, sim.mjd, nworld=1)
-  fresh.qpos.assign(d1.qpos.numpy())
+  for _ in range(3):
+    mjw.step(m, fresh)
   mjw.kinematics(m, fresh)
   sf.collision(m, fresh)
-  # d1's MPR was warm-started by its previous calls, fresh's was not: equal up to float noise
-  got, want = contact_records(fresh), contact_records(d1)
-  assert [r[:3] for r in got] == [r[:3] for r in want]
-  np.testing.assert_allclose([r[3:] for r in got], [r[3:] for r in want], atol=1e-6)
+  sf.collision(m, fresh)
+  assert contact_records(fresh) == contact_records(d1)
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="CUDA graph capture needs a CUDA device")

@@ -57,6 +57,10 @@ class DataState:
   stock_ctx: CollisionContext
   capacity: int
   warm: warmstart.WarmCache
+  patch_count: wp.array  # pairs queued for multi-contact (narrowphase.patch_kernel)
+  patch_pair: wp.array
+  patch_result: wp.array
+  patch_pos: wp.array
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
@@ -197,6 +201,10 @@ class Collider:
         ),
         capacity=capacity,
         warm=warmstart.make_cache(nworld, self.warm_slots if self.options.warm_start else 1),
+        patch_count=wp.zeros(1, dtype=int),
+        patch_pair=wp.zeros(capacity, dtype=int),
+        patch_result=wp.zeros(capacity, dtype=wp.vec4),
+        patch_pos=wp.zeros(capacity, dtype=wp.vec3),
         pair_outputs=broadphase.PairOutputs(),
       )
     out = st.pair_outputs
@@ -321,6 +329,7 @@ class Collider:
       )
     if self.mpr_types:
       warm = st.warm
+      st.patch_count.zero_()
       if self.options.warm_start:
         wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp])
       wp.launch(
@@ -337,6 +346,20 @@ class Collider:
           self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start, warm.stamp, warm.slot_stamp,
           warm.slot_key, warm.slot_value, self.geom_nonconvex,
         ] + pair_inputs,
+        outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
+      )
+      wp.launch(
+        narrowphase.patch_kernel,
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
+          m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+          m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
+          SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
+          self.options.max_contacts_per_pair, self.options.mc_perturbation, self.options.mc_tolerance, st.pair,
+          st.pairid, st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos, nthread,
+        ],
         outputs=self._contact_outputs(d),
       )
     if self.has_hfield_pairs:

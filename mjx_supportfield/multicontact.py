@@ -14,6 +14,9 @@ from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import Vertex
 from mjx_supportfield.mpr import mpr
 from mjx_supportfield.support import count_supports
+from mjx_supportfield.support import hull_point
+from mjx_supportfield.support import mesh_support_index
+from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -46,12 +49,31 @@ def _tilted(a: Shape, pivot: wp.vec3, rot: wp.mat33) -> Shape:
 
 
 @wp.func
+def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float) -> int:
+  """1 + the support vertex's hull neighbours that tie with it (capped at 3): enough to tell a
+  vertex from an edge from a face, without count_supports' flood fill."""
+  best = mesh_support_index(ms, mesh, d, SUPPORT_REFINED)
+  top = wp.dot(hull_point(ms, mesh, best), d)
+  tol = rtol * wp.max(wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh]), 1.0e-12)
+  if ms.nbr_num.shape[0] == 0:
+    return count_supports(GeomType.MESH, wp.vec3(0.0), mesh, ms, d, rtol)
+  g = ms.hull_adr[mesh] + best
+  n = int(1)
+  for k in range(ms.nbr_num[g]):
+    if n < 3 and wp.dot(hull_point(ms, mesh, ms.nbr[ms.nbr_adr[g] + k]), d) >= top - tol:
+      n += 1
+  return n
+
+
+@wp.func
 def _ties(s: Shape, ms: MeshSupport, d_world: wp.vec3, rtol: float) -> int:
   """How many support points a shape has in direction d within rtol of its extent: 1 for a
   point, 2 for an edge or a line, 3 for a face (or more, counted, for boxes and meshes)."""
   d = wp.normalize(wp.transpose(s.rot) @ d_world)
-  if s.gtype == GeomType.BOX or s.gtype == GeomType.MESH:
+  if s.gtype == GeomType.BOX:
     return count_supports(s.gtype, s.size, s.mesh, ms, d, rtol)
+  if s.gtype == GeomType.MESH:
+    return _mesh_ties(ms, s.mesh, d, rtol)
   if s.gtype == GeomType.CYLINDER:
     extent = wp.length(wp.vec2(s.size[0], s.size[1]))
     if wp.sqrt(wp.max(1.0 - d[2] * d[2], 0.0)) * s.size[0] <= rtol * extent:

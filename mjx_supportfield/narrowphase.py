@@ -223,6 +223,64 @@ def posed_shape(
   return s
 
 
+@wp.func
+def write_pair_contacts(
+  res: MprResult,
+  extra: Patch,
+  min_spacing: float,
+  tol_abs: float,
+  max_contacts: int,
+  band: float,
+  naconmax_in: int,
+  margin: float,
+  gap: float,
+  condim: int,
+  friction: vec5,
+  solref: wp.vec2,
+  solreffriction: wp.vec2,
+  solimp: vec5,
+  adhesion: float,
+  geoms: wp.vec2i,
+  pairid: wp.vec2i,
+  worldid: int,
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """Writes a pair's contacts: MPR's point (when kept, see keep_first), then the patch's points,
+  all with MPR's normal; the margin band comes off depth and position."""
+  first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, min_spacing, tol_abs), -1, 0), -1)
+  count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
+  frame = make_frame(res.normal)
+  for k in range(count):
+    j = first + k
+    depth = res.depth
+    pos = res.pos
+    if j >= 0:
+      depth = extra.depth[j]
+      pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
+    write_contact(
+      naconmax_in, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim, friction, solref,
+      solreffriction, solimp, adhesion, geoms, pairid, worldid, contact_dist_out, contact_pos_out, contact_frame_out,
+      contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
+      contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
+      contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+    )
+
+
 @functools.lru_cache(maxsize=None)
 def convex_kernel(use_gjk: bool):
   """The narrow-phase kernel of the convex pairs that are not analytic: penetration by MPR
@@ -280,6 +338,11 @@ def convex_kernel(use_gjk: bool):
     pairid_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
     nthread: int,
+    # Out:
+    patch_count: wp.array(dtype=int),
+    patch_pair: wp.array(dtype=int),
+    patch_result: wp.array(dtype=wp.vec4),
+    patch_pos: wp.array(dtype=wp.vec3),
     # Data out:
     contact_dist_out: wp.array(dtype=float),
     contact_pos_out: wp.array(dtype=wp.vec3),
@@ -379,62 +442,130 @@ def convex_kernel(use_gjk: bool):
       if warm_start and not wp.static(use_gjk):
         value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
         warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
-      frame = make_frame(res.normal)
       one_point = (
         geom_type[g1] == GeomType.SPHERE
         or geom_type[g1] == GeomType.ELLIPSOID
         or geom_type[g2] == GeomType.SPHERE
         or geom_type[g2] == GeomType.ELLIPSOID
       )
-      # duplicates: closer than mc_tolerance x the smaller geom's box size
-      ab = worldid % geom_aabb.shape[0]
-      size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
       if max_contacts > 1 and not one_point and extra.n == 0 and patch_possible(a, b, ms, res.normal, mc_perturbation):
-        extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
-                                   mc_tolerance * size)
-      # contact list: MPR's point (index -1) when it is kept, then the patch's points
-      first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, mc_tolerance * size, tolerance * scale), -1, 0), -1)
-      count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
-      for k in range(count):
-        j = first + k
-        depth = res.depth
-        pos = res.pos
-        if j >= 0:
-          depth = extra.depth[j]
-          pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
-        write_contact(
-          naconmax_in,
-          k,
-          band - depth,
-          pos - 0.5 * band * res.normal,
-          frame,
-          margin,
-          gap,
-          condim,
-          friction,
-          solref,
-          solreffriction,
-          solimp,
-          adhesion,
-          geoms,
-          pairid_in[cid],
-          worldid,
-          contact_dist_out,
-          contact_pos_out,
-          contact_frame_out,
-          contact_includemargin_out,
-          contact_friction_out,
-          contact_solref_out,
-          contact_solreffriction_out,
-          contact_solimp_out,
-          contact_dim_out,
-          contact_geom_out,
-          contact_efc_address_out,
-          contact_worldid_out,
-          contact_type_out,
-          contact_geomcollisionid_out,
-          contact_adhesion_out,
-          nacon_out,
-        )
+        # the tilts cost four more MPRs: queued for patch_kernel, which runs them on dense warps
+        slot = wp.atomic_add(patch_count, 0, 1)
+        patch_pair[slot] = cid
+        patch_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+        patch_pos[slot] = res.pos
+        continue
+      write_pair_contacts(
+        res, extra, 0.0, 0.0, 1, band, naconmax_in, margin, gap, condim, friction, solref, solreffriction, solimp,
+        adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out, contact_frame_out,
+        contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
+        contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
+        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      )
 
   return convex_narrowphase
+
+
+@wp.kernel(enable_backward=False)
+def patch_kernel(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_condim: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_priority: wp.array(dtype=int),
+  geom_solmix: wp.array2d(dtype=float),
+  geom_solref: wp.array2d(dtype=wp.vec2),
+  geom_solimp: wp.array2d(dtype=vec5),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_friction: wp.array2d(dtype=wp.vec3),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  geom_adhesion: wp.array2d(dtype=float),
+  geom_aabb: wp.array3d(dtype=wp.vec3),
+  pair_dim: wp.array(dtype=int),
+  pair_solref: wp.array2d(dtype=wp.vec2),
+  pair_solreffriction: wp.array2d(dtype=wp.vec2),
+  pair_solimp: wp.array2d(dtype=vec5),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  pair_adhesion: wp.array2d(dtype=float),
+  pair_friction: wp.array2d(dtype=vec5),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  naconmax_in: int,
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  tolerance: float,
+  iterations: int,
+  max_contacts: int,
+  mc_perturbation: float,
+  mc_tolerance: float,
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  patch_count: wp.array(dtype=int),
+  patch_pair: wp.array(dtype=int),
+  patch_result: wp.array(dtype=wp.vec4),
+  patch_pos: wp.array(dtype=wp.vec3),
+  nthread: int,
+  # Data out:
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """The pairs convex_narrowphase queued for multi-contact: the tilts, then all their contacts.
+
+  A separate kernel so that warps run only pairs that need the four extra MPRs: in the convex
+  kernel one such pair held its whole warp (8x the cost on a GPU)."""
+  tid = wp.tid()
+  for i in range(tid, patch_count[0], nthread):
+    cid = patch_pair[i]
+    geoms = pair_in[cid]
+    g1 = geoms[0]
+    g2 = geoms[1]
+    worldid = pair_worldid_in[cid]
+    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
+      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
+      pair_friction, pair_in, pairid_in, cid, worldid,
+    )
+    a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
+    b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
+    band = wp.max(margin + gap, 0.0)
+    a.inflate = band
+    rb = worldid % geom_rbound.shape[0]
+    scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
+    res = MprResult()
+    res.hit = 1
+    q = patch_result[i]
+    res.normal = wp.vec3(q[0], q[1], q[2])
+    res.depth = q[3]
+    res.pos = patch_pos[i]
+    # duplicates: closer than mc_tolerance x the smaller geom's box size
+    ab = worldid % geom_aabb.shape[0]
+    size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
+    extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
+                               mc_tolerance * size)
+    write_pair_contacts(
+      res, extra, mc_tolerance * size, tolerance * scale, max_contacts, band, naconmax_in, margin, gap, condim,
+      friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
+      contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+    )

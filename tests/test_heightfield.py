@@ -109,7 +109,7 @@ def _surface_clearance(mjm, mjd):
           for b in range(1, mjm.nbody)}
 
 
-STEPS = 1500
+STEPS = 2500
 
 
 @pytest.fixture(scope="module")

@@ -200,3 +200,42 @@ def test_nonconvex_scene_matches_generator():
 
   with open(os.path.join(MODELS, "nonconvex.xml")) as f:
     assert f.read() == make_nonconvex.SCENE
+
+
+CUBE = "-.01 -.01 -.01 .01 -.01 -.01 -.01 .01 -.01 .01 .01 -.01 -.01 -.01 .01 .01 -.01 .01 -.01 .01 .01 .01 .01 .01"
+
+
+def _in_bowl(body: str, marker: str):
+  """A static bowl (its inner bottom at z = 0.01) and one body; contacts of the pair."""
+  xml = f"""<mujoco><compiler meshdir="{os.path.join(MODELS, 'meshes')}"/>
+    <custom><text name="mjx_supportfield.nonconvex" data="{marker}"/></custom>
+    <asset><mesh name="bowl" file="bowl.obj"/><mesh name="small" file="bowl.obj" scale=".5 .5 .5"/>
+      <mesh name="cube" vertex="{CUBE}"/></asset>
+    <worldbody><body pos="0 0 0.08"><geom name="bowl" type="mesh" mesh="bowl"/></body>{body}</worldbody></mujoco>"""
+  sim, c = _contacts(xml)
+  bowl = sim.mjm.geom("bowl").id
+  up = np.array([n if g[0] == bowl else -n for n, g in zip(c.normal, c.geom)])
+  return sim, c, up
+
+
+def test_convex_mesh_in_the_bowl():
+  """A convex mesh cube sunk into the bowl's inner bottom (a sphere of radius 7 cm about the bowl's
+  centre): contacts at its lower corners, normals towards that centre, the corners' depths."""
+  centre, inner, pos = np.array([0.0, 0.0, 0.08]), 0.07, np.array([0.002, 0.001, 0.019])
+  _, c, up = _in_bowl(f'<body pos="{pos[0]} {pos[1]} {pos[2]}"><freejoint/><geom name="cube" type="mesh" mesh="cube"/>'
+                      "</body>", "bowl")
+  corners = pos + np.array([[x, y, -0.01] for x in (-0.01, 0.01) for y in (-0.01, 0.01)])
+  depths = np.linalg.norm(corners - centre, axis=1) - inner
+  assert c.n >= 3
+  assert abs(-c.dist.min() - depths.max()) < 3e-4, (c.dist, depths)
+  for n, p in zip(up, c.pos):  # the mesh's facets span 9 degrees of the sphere: normals within 8
+    assert angle_deg(n, centre - p) < 8.0, (n, p)
+
+
+def test_nonconvex_pair_nested_bowls():
+  """Both non-convex: a half-size bowl resting in the big one, its bottom 1 mm into the inner bottom."""
+  _, c, up = _in_bowl('<body pos="0 0 0.049"><freejoint/><geom name="small" type="mesh" mesh="small"/></body>',
+                      "bowl small")
+  assert c.n >= 1
+  assert np.all(up[:, 2] > 0.95), up
+  assert abs(-c.dist.min() - 0.001) < 5e-4, c.dist

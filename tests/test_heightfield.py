@@ -147,3 +147,15 @@ def test_bodies_come_to_rest_on_it(dropped):
   sim, _ = dropped
   assert np.abs(sim.d.qvel.numpy()).max() < 0.2
   assert int(sim.d.nacon.numpy()[0]) >= len(make_terrain.BODIES)
+
+
+def test_geom_over_too_many_cells_reports_overflow(capfd):
+  """A box over ~8000 cells (more than MAX_CELLS): the cells around its centre still give the
+  contact, and the pair sets OverflowType.HFIELD with a warning, as MuJoCo Warp reports its own."""
+  big = '<body pos="0 0 0.049"><freejoint/><geom name="slab" type="box" size=".35 .35 .05"/></body>'
+  sim, c = _plugin_contacts(_hfield_xml(np.zeros((129, 129)), (0.5, 0.5, 0.1, 0.1), big))
+  assert int(sim.d.overflow.numpy().max()) & int(mjw.OverflowType.HFIELD)
+  assert "heightfield overflow" in capfd.readouterr().out
+  assert c.n >= 1
+  np.testing.assert_allclose(c.dist, -0.001, atol=1e-5)
+  np.testing.assert_allclose(c.normal[:, 2], 1.0, atol=1e-6)

@@ -430,7 +430,8 @@ def convex_kernel(use_gjk: bool):
       extra.n = 0
       # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding
       # diameter): MPR's portal face need not be the nearest; the SDFs know the nearest surface
-      if needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
+      # (EPA's depth is exact: the fallback only serves MPR)
+      if not wp.static(use_gjk) and needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
         bare = a  # the SDFs measure the true surfaces; A keeps its margin band for multi-contact
         bare.inflate = 0.0
         fallback = sdf_contact(bare, b, ms, sdf, support_mode, 1.0e-4 * scale)

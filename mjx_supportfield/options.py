@@ -33,6 +33,7 @@ class Options:
     mpr_to_sdf_overlap_ratio: when MPR's depth exceeds this fraction of the smaller geom's
       bounding diameter (one shape largely inside the other), the contact comes from the
       shapes' signed-distance fields if they find a shallower one; 0 turns the fallback off.
+      MPR only: with narrowphase="gjk", EPA's depth is exact and the fallback is not used.
     sdf_res: cells along the longest side of a mesh hull's baked SDF.
     warm_start: MPR starts from each pair's contact normal of the previous collision call
       (kept per world and geom pair, dropped once the pair finds no contact); a warm start

@@ -27,6 +27,7 @@ from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import Vertex
+from mjx_supportfield.mpr import miss
 from mjx_supportfield.support import count_supports
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
@@ -688,14 +689,6 @@ def _flat_normal(a: Shape, b: Shape) -> wp.vec3:
 
 
 @wp.func
-def _miss() -> MprResult:
-  r = MprResult()
-  r.hit = 0
-  r.depth = 0.0
-  return r
-
-
-@wp.func
 def gjk_epa(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int) -> MprResult:
   """Penetration of A (grown by a.inflate) and B by GJK, and EPA where their cores overlap.
 
@@ -717,7 +710,7 @@ def gjk_epa(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: f
   pb = g.pb
   if g.separated == 1:
     if g.dist > rims + touch:
-      return _miss()
+      return miss()
     depth = wp.max(rims - g.dist, 0.0)
     n = g.normal
   elif _thin(a) and _thin(b):

@@ -42,7 +42,8 @@ def _portal_normal(v1: wp.vec3, v2: wp.vec3, v3: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def _miss() -> MprResult:
+def miss() -> MprResult:
+  """No contact."""
   r = MprResult()
   r.hit = 0
   r.depth = 0.0
@@ -112,14 +113,14 @@ def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float
   d = wp.normalize(-p0.v)
   p1 = _support(a, b, ms, d, mode)
   if wp.dot(p1.v, d) <= 0.0:
-    return _miss()
+    return miss()
   d = wp.cross(p0.v, p1.v)
   if wp.length(d) < eps * scale:
     return _single_point(p1)
   d = wp.normalize(d)
   p2 = _support(a, b, ms, d, mode)
   if wp.dot(p2.v, d) <= 0.0:
-    return _miss()
+    return miss()
   d = wp.cross(p1.v - p0.v, p2.v - p0.v)
   if wp.length(d) < eps * scale:
     return _single_point(p1)
@@ -135,7 +136,7 @@ def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float
   for _ in range(iterations):
     p3 = _support(a, b, ms, d, mode)
     if wp.dot(p3.v, d) <= 0.0:
-      return _miss()
+      return miss()
     if wp.dot(wp.cross(p1.v, p3.v), p0.v) < 0.0:
       p2 = p3
       d = wp.cross(p1.v - p0.v, p3.v - p0.v)
@@ -149,7 +150,7 @@ def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float
       return _single_point(p1)
     d = wp.normalize(d)
   if found == 0:
-    return _miss()
+    return miss()
 
   # refine the portal until the origin is behind it, then push it to the boundary
   inside = int(0)
@@ -160,7 +161,7 @@ def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float
     p4 = _support(a, b, ms, n, mode)
     d4 = wp.dot(p4.v, n)
     if inside == 0 and d4 < 0.0:
-      return _miss()
+      return miss()
     gap = wp.min(d4 - wp.dot(p1.v, n), wp.min(d4 - wp.dot(p2.v, n), d4 - wp.dot(p3.v, n)))
     if gap <= atol:
       break
@@ -177,7 +178,7 @@ def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float
         p1 = p4
   n = _portal_normal(p1.v, p2.v, p3.v)
   if inside == 0 and wp.dot(n, p1.v) < 0.0:
-    return _miss()
+    return miss()
 
   # the portal lies on the boundary of A - B: its plane's distance to the origin is the
   # depth along its normal (on curved boundaries the plane is the tangent plane there)

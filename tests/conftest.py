@@ -161,3 +161,16 @@ def angle_deg(a, b) -> float:
 
 def geom_id(mjm, name: str) -> int:
   return int(mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, name))
+
+
+def quat_mat(q) -> np.ndarray:
+  """Rotation matrix of a unit quaternion (w, x, y, z)."""
+  m = np.zeros(9)
+  mujoco.mju_quat2Mat(m, np.asarray(q, dtype=np.float64))
+  return m.reshape(3, 3)
+
+
+def unit(v) -> np.ndarray:
+  """v / |v|."""
+  v = np.asarray(v, dtype=np.float64)
+  return v / np.linalg.norm(v)

@@ -17,7 +17,9 @@ from mujoco_warp._src.types import GeomType
 
 from conftest import MODELS
 from conftest import angle_deg
+from conftest import quat_mat
 from conftest import random_quat
+from conftest import unit
 from mjx_supportfield import Options
 from mjx_supportfield import gjk
 from mjx_supportfield import support_field
@@ -47,19 +49,6 @@ def rot(axis, angle):
   q = np.zeros(4)
   mujoco.mju_axisAngle2Quat(q, np.asarray(axis, dtype=np.float64), angle)
   return quat_mat(q)
-
-
-def quat_mat(q):
-  """Rotation matrix of a unit quaternion (w, x, y, z)."""
-  m = np.zeros(9)
-  mujoco.mju_quat2Mat(m, np.asarray(q, dtype=np.float64))
-  return m.reshape(3, 3)
-
-
-def unit(v):
-  """v / |v|."""
-  v = np.asarray(v, dtype=np.float64)
-  return v / np.linalg.norm(v)
 
 
 Z_TO_X = rot([0, 1, 0], np.pi / 2)

@@ -19,6 +19,8 @@ from conftest import contacts
 from conftest import free_body_qpos
 from conftest import geom_id
 from conftest import load
+from conftest import quat_mat
+from conftest import unit
 from conftest import random_quat
 from conftest import set_qpos
 
@@ -60,17 +62,6 @@ def yaw(angle):
   return np.array([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)])
 
 
-def quat_to_mat(q):
-  m = np.zeros(9)
-  mujoco.mju_quat2Mat(m, np.asarray(q, dtype=np.float64))
-  return m.reshape(3, 3)
-
-
-def unit(v):
-  v = np.asarray(v, dtype=np.float64)
-  return v / np.linalg.norm(v)
-
-
 # Each case places its two bodies around a slot centre c for a signed separation sep (negative:
 # penetration) and returns (geom1, geom2, normal from geom1 to geom2, contact midpoint, patch):
 # patch is None for a point contact, else the radius of a disc around the midpoint's xy that
@@ -99,7 +90,7 @@ def _sphere_on_ellipsoid(mjm, qpos, c, sep, rng, names, w_local):
   sph, ell = names
   s = np.array([0.06, 0.04, 0.03])
   qe = random_quat(rng)
-  rot = quat_to_mat(qe)
+  rot = quat_mat(qe)
   q_local = s * unit(w_local)
   q = c + rot @ q_local
   n = unit(rot @ (q_local / s**2))

@@ -10,7 +10,6 @@ from typing import Optional
 
 import mujoco
 import mujoco_warp as mjw
-import numpy as np
 import warp as wp
 
 from mjx_supportfield.install import install

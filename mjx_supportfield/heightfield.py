@@ -6,19 +6,21 @@ rows along y), solid down to ``-size[3]``. Each grid cell is split into two tria
 the diagonal from (row, col) to (row + 1, col + 1), as MuJoCo does.
 
 The cells under the geom's extent (support queries in the terrain frame) are visited, and
-each gives contact candidates by two passes:
-- the plane pass (geom points in terrain faces): the geom's points below a triangle's plane
-  whose projection lies in the triangle: its deepest point, and a box's corners, a mesh's
-  hull vertices, a capsule's two ends. On flat terrain this gives the contacts of a plane;
+each gives contact candidates in three passes:
+- the plane pass (geom points in terrain faces), run over all cells first: the geom's points
+  below a triangle's plane whose projection lies in the triangle: its deepest point, and a
+  box's corners, a mesh's hull vertices, a capsule's two ends. On flat terrain this gives
+  the contacts of a plane;
+- the prism pass (a geom edge dipping into a face): MPR of the triangle's prism (triangle and
+  base, as MuJoCo collides) against the geom, kept only when the prism's witness point lies
+  on the top triangle and no plane-pass candidate with that normal is as deep. A prism's
+  side walls lie inside the terrain: an exact penetration solver would push geoms out
+  sideways through them, so those answers are dropped;
 - the point pass (terrain features in the geom): peaks (grid vertices above the mean of
   their neighbours), and the point of each ridge edge (a convex fold of the surface) nearest
-  the geom's centre, that lie inside the geom; MPR of that point against the geom gives
-  depth and normal (the geom's surface normal). Normals of a face the point belongs to are
-  left to the plane pass. This catches ridges and peaks poking into a geom, which no
-  triangle's plane sees; flat and concave places need no point pass.
-MuJoCo instead runs a convex collision per triangular prism (triangle and base); a prism's
-side walls lie inside the terrain, and an exact penetration solver pushes geoms out through
-them, so this plugin does not use prisms.
+  the geom's centre and its ends, that lie inside the geom; MPR of that point against the
+  geom gives depth and normal (the geom's surface normal). This catches ridges and peaks
+  poking into a geom, which no triangle's plane sees.
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
 points farthest from those already chosen are written, up to ``max_contacts``. A geom over
@@ -227,82 +229,81 @@ def terrain_candidates(
   # first the plane pass everywhere (face contacts), then prisms and points, which skip what
   # the face contacts already hold
   for cell in range(2 * (r1 - r0 + 1) * (c1 - c0 + 1)):
-    second = cell / ((r1 - r0 + 1) * (c1 - c0 + 1))
-    r = r0 + (cell / (c1 - c0 + 1)) % (r1 - r0 + 1)
+    second = cell // ((r1 - r0 + 1) * (c1 - c0 + 1))
+    r = r0 + (cell // (c1 - c0 + 1)) % (r1 - r0 + 1)
     c = c0 + cell % (c1 - c0 + 1)
-    if True:
-      p00 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c)
-      p01 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c + 1)
-      p10 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c)
-      p11 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c + 1)
-      if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < lo[2]:
-        continue  # the geom is above this cell
-      # the two triangles (p00, p10, p11) and (p00, p11, p01), normals up
-      na = wp.normalize(wp.cross(p10 - p00, p11 - p00))
-      na = wp.where(na[2] < 0.0, -na, na)
-      nb = wp.normalize(wp.cross(p11 - p00, p01 - p00))
-      nb = wp.where(nb[2] < 0.0, -nb, nb)
-      if second == 0:
-        cands = plane_pass(cands, b, ms, mode, p00, p10, p11, na, band, spacing)
-        cands = plane_pass(cands, b, ms, mode, p00, p11, p01, nb, band, spacing)
+    p00 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c)
+    p01 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c + 1)
+    p10 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c)
+    p11 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c + 1)
+    if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < lo[2]:
+      continue  # the geom is above this cell
+    # the two triangles (p00, p10, p11) and (p00, p11, p01), normals up
+    na = wp.normalize(wp.cross(p10 - p00, p11 - p00))
+    na = wp.where(na[2] < 0.0, -na, na)
+    nb = wp.normalize(wp.cross(p11 - p00, p01 - p00))
+    nb = wp.where(nb[2] < 0.0, -nb, nb)
+    if second == 0:
+      cands = plane_pass(cands, b, ms, mode, p00, p10, p11, na, band, spacing)
+      cands = plane_pass(cands, b, ms, mode, p00, p11, p01, nb, band, spacing)
+      continue
+    cands = prism_pass(cands, b, ms, mode, p00, p10, p11, na, -size[3], band, spacing, scale, tol, iterations, refine)
+    cands = prism_pass(cands, b, ms, mode, p00, p11, p01, nb, -size[3], band, spacing, scale, tol, iterations, refine)
+    # this cell's vertex p00 and edges from it, its diagonal, and the range's far border:
+    # only convex features (ridges, peaks) can poke into a geom; elsewhere the surface
+    # points inside it are the plane pass's business. A ridge is tried at its point
+    # nearest B's centre and at both ends (a face of B meets it deepest at an end).
+    eps = 1.0e-6 * (dx + dy + size[2])
+    for k in range(9):
+      if (k == 4 or k == 6 or k == 8) and c < c1:
         continue
-      cands = prism_pass(cands, b, ms, mode, p00, p10, p11, na, -size[3], band, spacing, scale, tol, iterations, refine)
-      cands = prism_pass(cands, b, ms, mode, p00, p11, p01, nb, -size[3], band, spacing, scale, tol, iterations, refine)
-      # this cell's vertex p00 and edges from it, its diagonal, and the range's far border:
-      # only convex features (ridges, peaks) can poke into a geom; elsewhere the surface
-      # points inside it are the plane pass's business. A ridge is tried at its point
-      # nearest B's centre and at both ends (a face of B meets it deepest at an end).
-      eps = 1.0e-6 * (dx + dy + size[2])
-      for k in range(9):
-        if (k == 4 or k == 6 or k == 8) and c < c1:
-          continue
-        if (k == 5 or k == 7 or k == 8) and r < r1:
-          continue
-        e0 = p00
-        e1 = p00
-        convex = bool(False)
-        if k == 0:
-          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, eps)
-        elif k == 1:
-          e1 = p01
-          other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
-          convex = r == 0 or _ridge(p00, p01, p11, other, eps)
-        elif k == 2:
-          e1 = p10
-          other = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
-          convex = c == 0 or _ridge(p00, p10, p11, other, eps)
-        elif k == 3:
-          e1 = p11
-          convex = _ridge(p00, p11, p10, p01, eps)
-        elif k == 4:
-          e0 = p01
-          e1 = p11
-          other = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
-          convex = c + 2 > ncol - 1 or _ridge(p01, p11, p00, other, eps)
-        elif k == 5:
-          e0 = p10
-          e1 = p11
-          other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
-          convex = r + 2 > nrow - 1 or _ridge(p10, p11, p00, other, eps)
-        elif k == 6:
-          e0 = p01
-          e1 = p01
-          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c + 1, eps)
-        elif k == 7:
-          e0 = p10
-          e1 = p10
-          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c, eps)
-        else:
-          e0 = p11
-          e1 = p11
-          convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c + 1, eps)
-        if not convex:
-          continue
-        cands = point_pass(cands, b, ms, mode, _closest_on_segment(e0, e1, b.center), lo, hi, na, nb, band, spacing,
-                           scale, tol, iterations, refine)
-        if k >= 1 and k <= 5:
-          cands = point_pass(cands, b, ms, mode, e0, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
-          cands = point_pass(cands, b, ms, mode, e1, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
+      if (k == 5 or k == 7 or k == 8) and r < r1:
+        continue
+      e0 = p00
+      e1 = p00
+      convex = bool(False)
+      if k == 0:
+        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, eps)
+      elif k == 1:
+        e1 = p01
+        other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
+        convex = r == 0 or _ridge(p00, p01, p11, other, eps)
+      elif k == 2:
+        e1 = p10
+        other = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
+        convex = c == 0 or _ridge(p00, p10, p11, other, eps)
+      elif k == 3:
+        e1 = p11
+        convex = _ridge(p00, p11, p10, p01, eps)
+      elif k == 4:
+        e0 = p01
+        e1 = p11
+        other = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
+        convex = c + 2 > ncol - 1 or _ridge(p01, p11, p00, other, eps)
+      elif k == 5:
+        e0 = p10
+        e1 = p11
+        other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
+        convex = r + 2 > nrow - 1 or _ridge(p10, p11, p00, other, eps)
+      elif k == 6:
+        e0 = p01
+        e1 = p01
+        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c + 1, eps)
+      elif k == 7:
+        e0 = p10
+        e1 = p10
+        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c, eps)
+      else:
+        e0 = p11
+        e1 = p11
+        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c + 1, eps)
+      if not convex:
+        continue
+      cands = point_pass(cands, b, ms, mode, _closest_on_segment(e0, e1, b.center), lo, hi, na, nb, band, spacing,
+                         scale, tol, iterations, refine)
+      if k >= 1 and k <= 5:
+        cands = point_pass(cands, b, ms, mode, e0, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
+        cands = point_pass(cands, b, ms, mode, e1, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
   return cands
 
 

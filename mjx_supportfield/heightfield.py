@@ -41,6 +41,7 @@ from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.candidates import row
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.narrowphase import posed_shape
+from mjx_supportfield.support import box_corner
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
@@ -79,9 +80,7 @@ def plane_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3,
   out = _plane_point(c, support_world(b, ms, -n, mode), v0, v1, v2, n, band, spacing)
   if b.gtype == GeomType.BOX:
     for k in range(8):
-      corner = wp.vec3(wp.where((k & 1) != 0, 1.0, -1.0) * b.size[0], wp.where((k & 2) != 0, 1.0, -1.0) * b.size[1],
-                       wp.where((k & 4) != 0, 1.0, -1.0) * b.size[2])
-      out = _plane_point(out, b.pos + b.rot @ corner, v0, v1, v2, n, band, spacing)
+      out = _plane_point(out, box_corner(b, k), v0, v1, v2, n, band, spacing)
   elif b.gtype == GeomType.MESH:
     for k in range(ms.hull_num[b.mesh]):
       out = _plane_point(out, b.pos + b.rot @ hull_point(ms, b.mesh, k), v0, v1, v2, n, band, spacing)

@@ -31,10 +31,10 @@ from mjx_supportfield.candidates import empty
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.sdf import MeshSdf
-from mjx_supportfield.sdf import primitive_sdf
-from mjx_supportfield.sdf import mesh_sdf_value
-from mjx_supportfield.support import hull_point
-from mjx_supportfield.support import support_world
+from mjx_supportfield.sdf import sample_point
+from mjx_supportfield.sdf import shape_sdf
+from mjx_supportfield.sdf import shape_sdf_grad
+from mjx_supportfield.support import box_corner
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -98,26 +98,17 @@ class SdfSet:
 
 
 @wp.func
-def signed_distance(s: Shape, nonconvex: int, sdfs: SdfSet, p_world: wp.vec3) -> float:
-  """Signed distance of a world point to a geom (its true mesh when non-convex)."""
-  p = wp.transpose(s.rot) @ (p_world - s.pos)
-  if s.gtype == GeomType.MESH:
-    if nonconvex:
-      return mesh_sdf_value(sdfs.true_mesh, s.mesh, p)
-    if sdfs.hull.res[s.mesh][0] == 0:
-      return 1.0e6
-    return mesh_sdf_value(sdfs.hull, s.mesh, p)
-  return primitive_sdf(s.gtype, s.size, p)
+def _field(nonconvex: int, sdfs: SdfSet) -> MeshSdf:
+  """The baked SDFs a mesh geom answers from: its true mesh's when non-convex, else its hull's."""
+  if nonconvex:
+    return sdfs.true_mesh
+  return sdfs.hull
 
 
 @wp.func
-def _gradient(s: Shape, nonconvex: int, sdfs: SdfSet, p: wp.vec3, h: float) -> wp.vec3:
-  g = wp.vec3(0.0)
-  for a in range(3):
-    e = wp.vec3(0.0)
-    e[a] = h
-    g[a] = signed_distance(s, nonconvex, sdfs, p + e) - signed_distance(s, nonconvex, sdfs, p - e)
-  return wp.normalize(g)
+def signed_distance(s: Shape, nonconvex: int, sdfs: SdfSet, p_world: wp.vec3) -> float:
+  """Signed distance of a world point to a geom (its true mesh when non-convex)."""
+  return shape_sdf(s, _field(nonconvex, sdfs), p_world)
 
 
 @wp.func
@@ -125,9 +116,7 @@ def _step(s: Shape, nonconvex: int, sdfs: SdfSet) -> float:
   """Finite-difference step and sampling spacing for a geom's SDF: a quarter cell of a baked
   grid, 1e-4 of the size for closed forms."""
   if s.gtype == GeomType.MESH:
-    if nonconvex:
-      return 0.25 * sdfs.true_mesh.cell[s.mesh]
-    return 0.25 * sdfs.hull.cell[s.mesh]
+    return 0.25 * _field(nonconvex, sdfs).cell[s.mesh]
   return 1.0e-4 * wp.max(wp.length(s.size), 1.0e-6)
 
 
@@ -139,7 +128,7 @@ def _point(c: Candidates, dst: Shape, dst_nonconvex: int, sdfs: SdfSet, p: wp.ve
   phi = signed_distance(dst, dst_nonconvex, sdfs, p) - radius
   if phi >= band:
     return c
-  grad = _gradient(dst, dst_nonconvex, sdfs, p, _step(dst, dst_nonconvex, sdfs))
+  grad = shape_sdf_grad(dst, _field(dst_nonconvex, sdfs), p, _step(dst, dst_nonconvex, sdfs))
   n = wp.where(side == 0, grad, -grad)
   # midpoint of the source's surface point (p - radius grad) and dst's nearest surface point
   # (p - (phi + radius) grad); stored grown by the band, as the writer expects
@@ -176,13 +165,6 @@ def _segment_min(dst: Shape, dst_nonconvex: int, sdfs: SdfSet, p0: wp.vec3, p1: 
 
 
 @wp.func
-def _box_corner(s: Shape, k: int) -> wp.vec3:
-  local = wp.vec3(wp.where((k & 1) != 0, 1.0, -1.0) * s.size[0], wp.where((k & 2) != 0, 1.0, -1.0) * s.size[1],
-                  wp.where((k & 4) != 0, 1.0, -1.0) * s.size[2])
-  return s.pos + s.rot @ local
-
-
-@wp.func
 def vertex_pass(c: Candidates, src: Shape, src_nonconvex: int, dst: Shape, dst_nonconvex: int, sdfs: SdfSet,
                 ms: MeshSupport, mesh_vertnum: wp.array(dtype=int), mode: int, side: int, band: float,
                 spacing: float) -> Candidates:
@@ -197,7 +179,7 @@ def vertex_pass(c: Candidates, src: Shape, src_nonconvex: int, dst: Shape, dst_n
     return _point(out, dst, dst_nonconvex, sdfs, q, src.size[0], side, band, spacing)
   if src.gtype == GeomType.BOX:
     for k in range(8):
-      out = _point(out, dst, dst_nonconvex, sdfs, _box_corner(src, k), 0.0, side, band, spacing)
+      out = _point(out, dst, dst_nonconvex, sdfs, box_corner(src, k), 0.0, side, band, spacing)
     return out
   if src.gtype == GeomType.MESH:
     if src_nonconvex:
@@ -205,14 +187,11 @@ def vertex_pass(c: Candidates, src: Shape, src_nonconvex: int, dst: Shape, dst_n
       for k in range(mesh_vertnum[src.mesh]):
         out = _point(out, dst, dst_nonconvex, sdfs, src.pos + src.rot @ ms.vert[adr + k], 0.0, side, band, spacing)
     else:
-      for k in range(ms.hull_num[src.mesh]):
-        out = _point(out, dst, dst_nonconvex, sdfs, src.pos + src.rot @ hull_point(ms, src.mesh, k), 0.0, side, band,
-                     spacing)
+      for k in range(ms.hull_num[src.mesh]):  # the hull's vertices
+        out = _point(out, dst, dst_nonconvex, sdfs, sample_point(src, ms, mode, k), 0.0, side, band, spacing)
     return out
   for k in range(26):  # cylinder, ellipsoid: support points in the 26 grid directions
-    m = wp.where(k >= 13, k + 1, k)
-    d = wp.vec3(float(m % 3 - 1), float((m // 3) % 3 - 1), float(m // 9 - 1))
-    out = _point(out, dst, dst_nonconvex, sdfs, support_world(src, ms, d, mode), 0.0, side, band, spacing)
+    out = _point(out, dst, dst_nonconvex, sdfs, sample_point(src, ms, mode, k), 0.0, side, band, spacing)
   return out
 
 
@@ -229,7 +208,7 @@ def edge_pass(c: Candidates, src: Shape, src_nonconvex: int, dst: Shape, dst_non
       k = e % 4
       bits0 = wp.where(axis == 0, (k & 1) * 2 + (k & 2) * 2, wp.where(axis == 1, (k & 1) + (k & 2) * 2, (k & 1) + (k & 2)))
       bits1 = bits0 + wp.where(axis == 0, 1, wp.where(axis == 1, 2, 4))
-      q = _segment_min(dst, dst_nonconvex, sdfs, _box_corner(src, bits0), _box_corner(src, bits1), h)
+      q = _segment_min(dst, dst_nonconvex, sdfs, box_corner(src, bits0), box_corner(src, bits1), h)
       out = _point(out, dst, dst_nonconvex, sdfs, q, 0.0, side, band, spacing)
     return out
   if src.gtype != GeomType.MESH or src_nonconvex == 0:

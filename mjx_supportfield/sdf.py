@@ -200,9 +200,9 @@ class SdfContact:
 
 
 @wp.func
-def _sample(s: Shape, ms: MeshSupport, mode: int, n: int) -> wp.vec3:
+def sample_point(s: Shape, ms: MeshSupport, mode: int, n: int) -> wp.vec3:
   """Sample n of a shape: its hull vertices (meshes), else support points in the 26 grid
-  directions; the last sample is the interior point."""
+  directions; the last sample is the interior point (world frame)."""
   if s.gtype == GeomType.MESH:
     if n < ms.hull_num[s.mesh]:
       return s.pos + s.rot @ hull_point(ms, s.mesh, n)
@@ -230,7 +230,7 @@ def sdf_contact(a: Shape, b: Shape, ms: MeshSupport, sdf: MeshSdf, mode: int, h:
     if src.gtype == GeomType.MESH:
       nsample = ms.hull_num[src.mesh] + 1
     for n in range(nsample):
-      p = _sample(src, ms, mode, n)
+      p = sample_point(src, ms, mode, n)
       depth = -shape_sdf(dst, sdf, p)
       if depth > best.depth:
         grad = shape_sdf_grad(dst, sdf, p, h)

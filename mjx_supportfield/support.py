@@ -177,6 +177,14 @@ def support_world(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> wp.vec3:
   return p
 
 
+@wp.func
+def box_corner(s: Shape, k: int) -> wp.vec3:
+  """Corner k (bits 0, 1, 2: +x, +y, +z) of a posed box, world frame."""
+  local = wp.vec3(wp.where((k & 1) != 0, 1.0, -1.0) * s.size[0], wp.where((k & 2) != 0, 1.0, -1.0) * s.size[1],
+                  wp.where((k & 4) != 0, 1.0, -1.0) * s.size[2])
+  return s.pos + s.rot @ local
+
+
 TIE_STACK = 64  # largest tie set count_supports walks; larger ones report TIE_STACK
 _tie_stack = wp.types.vector(length=TIE_STACK, dtype=int)
 

@@ -11,14 +11,16 @@ from mjx_supportfield.types import Shape
 
 @wp.func
 def hull_point(ms: MeshSupport, mesh: int, local: int) -> wp.vec3:
-  return ms.vert[ms.vertadr[mesh] + ms.hull_vert[ms.hull_adr[mesh] + local]]
+  return ms.hull_pos[ms.hull_adr[mesh] + local]
 
 
 # a field cell is a 16-bit word: the local hull index of the cell's support vertex in the low
-# 15 bits, and a flag saying that this vertex is the support for every direction of the quad
-# spanned by cells (i, j) .. (i + 1, j + 1), proven at build time (support_field.certify)
+# 14 bits and two flags about the quad spanned by cells (i, j) .. (i + 1, j + 1), both proven at
+# build time (support_field._certify): CERTIFIED, this vertex is the support for every direction
+# of the quad; CORNERS_EXACT, the best of the quad's 4 corner vertices is
 CERTIFIED = 0x8000
-INDEX_MASK = 0x7FFF
+CORNERS_EXACT = 0x4000
+INDEX_MASK = 0x3FFF
 
 
 @wp.func
@@ -45,7 +47,8 @@ def _cell_coords(ms: MeshSupport, mesh: int, d: wp.vec3) -> wp.vec2:
 def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3) -> tuple[int, bool]:
   """Support vertex from the field for direction d (mesh frame), and whether it is proven exact.
 
-  A certified quad answers with one read; otherwise the best of its 4 corner cells.
+  A certified quad answers with one read; otherwise the best of its 4 corner cells, which is
+  exact where the quad is flagged CORNERS_EXACT.
   """
   res = ms.field_res[mesh]
   uv = _cell_coords(ms, mesh, d)
@@ -68,7 +71,7 @@ def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3) -> tuple[int, bool]:
     if cd > best_dot:
       best = c
       best_dot = cd
-  return best, False
+  return best, (word & CORNERS_EXACT) != 0
 
 
 @wp.func

@@ -1,10 +1,11 @@
 """Builds the support field of every mesh from MuJoCo's convex hulls.
 
 A field is a lat-long grid of ``res x res`` directions per mesh; each cell stores the
-15-bit local index of the hull vertex that is extreme in that direction (positions are
+14-bit local index of the hull vertex that is extreme in that direction (positions are
 gathered from MuJoCo's ``mesh_vert``), so a cell costs 2 bytes instead of the seed's 16.
-The 16th bit certifies the cell's quad: its vertex is proven to be the support for every
-direction between the quad's 4 corners, so a query there needs one read and no climb.
+The two top bits carry proofs made at build time about the cell's quad: CERTIFIED, its vertex
+is the support for every direction between the quad's 4 corners (a query needs one read);
+CORNERS_EXACT, the best of the 4 corner vertices is (a query needs no climb).
 Geoms that share a mesh share its field. Each mesh gets one resolution step above the
 smallest (up to 64) at which the plain 4-cell lookup (``support_mode="field"``) returns the
 exact support on a dense check set (4 directions inside every cell plus random ones), else
@@ -19,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from mjx_supportfield.support import CERTIFIED
+from mjx_supportfield.support import CORNERS_EXACT
 from mjx_supportfield.support import INDEX_MASK
 from mjx_supportfield.support import field_cell
 from mjx_supportfield.support import field_lookup
@@ -35,7 +37,7 @@ _NCHECK_SUB = 2  # in-cell samples per cell side
 # become exact at any finite resolution, since near each face normal three or more vertex
 # cones meet inside one cell, so those meshes get the cap without paying for finer checks
 _ADAPTIVE_MAX = 64
-_MAX_HULL = INDEX_MASK  # largest hull a cell's 15 index bits can address
+_MAX_HULL = INDEX_MASK  # largest hull a cell's 14 index bits can address
 
 
 @dataclasses.dataclass
@@ -228,11 +230,57 @@ def min_on_quad(a: wp.vec3, th0: float, th1: float, ph0: float, ph1: float) -> f
   return m
 
 
+_PROOF_SPLITS = 8  # a quad the corners do not cover as a whole is retried in 2x2, 4x4, 8x8 parts
+
+
+@wp.func
+def _beaten_on_part(ms: MeshSupport, mesh: int, corners: wp.vec4i, pn: wp.vec3, th0: float, th1: float, ph0: float,
+                    ph1: float) -> bool:
+  """Whether one corner vertex beats the point pn for every direction of the quad part."""
+  for c in range(4):
+    if min_on_quad(hull_point(ms, mesh, corners[c]) - pn, th0, th1, ph0, ph1) >= 0.0:
+      return True
+  return False
+
+
+@wp.func
+def _beaten_on_quad(ms: MeshSupport, mesh: int, corners: wp.vec4i, n: int, th0: float, th1: float, ph0: float,
+                    ph1: float) -> bool:
+  """Whether, for every direction of the quad, some corner vertex beats vertex n.
+
+  Proven part by part: the quad as a whole, else split into 2x2, 4x4 and 8x8 parts, each of
+  which must have one corner vertex that beats n all over it.
+  """
+  for c in range(4):
+    if corners[c] == n:
+      return True
+  pn = hull_point(ms, mesh, n)
+  splits = int(1)
+  while splits <= _PROOF_SPLITS:
+    dth = (th1 - th0) / float(splits)
+    dph = (ph1 - ph0) / float(splits)
+    proven = bool(True)
+    for k in range(splits * splits):
+      a = th0 + dth * float(k % splits)
+      b = ph0 + dph * float(k // splits)
+      if not _beaten_on_part(ms, mesh, corners, pn, a, a + dth, b, b + dph):
+        proven = False
+        break
+    if proven:
+      return True
+    splits *= 2
+  return False
+
+
 @wp.kernel
 def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16)):
-  """Flags quads whose 4 corners share a vertex that beats all its hull neighbours inside the quad.
+  """Flags the quads whose lookup is proven exact.
 
-  On a convex hull a vertex that no neighbour beats is the support, so the flag is a proof.
+  Let w be the best of the quad's corner vertices for a direction d. If every hull neighbour of
+  every corner vertex is beaten, over the whole quad, by some corner vertex, then w beats all its
+  own neighbours at d, and on a convex hull a vertex that no neighbour beats is the support. So
+  the best of the 4 corners is exact in the quad (CORNERS_EXACT), and when the corners agree,
+  their vertex is (CERTIFIED, one read).
   """
   cell = wp.tid()
   mesh = cell_mesh[cell]
@@ -243,22 +291,27 @@ def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.arra
   if j >= res - 1:
     return
   i1 = (i + 1) % res
-  v = field_cell(ms, mesh, i, j)
-  if field_cell(ms, mesh, i1, j) != v or field_cell(ms, mesh, i, j + 1) != v or field_cell(ms, mesh, i1, j + 1) != v:
-    return
-  g = ms.hull_adr[mesh] + v
-  if ms.nbr_num[g] == 0:
-    return  # no hull graph: nothing to prove it with
+  corners = wp.vec4i(field_cell(ms, mesh, i, j), field_cell(ms, mesh, i1, j), field_cell(ms, mesh, i, j + 1),
+                     field_cell(ms, mesh, i1, j + 1))
   th0 = 2.0 * wp.pi * float(i) / float(res) - wp.pi
   th1 = th0 + 2.0 * wp.pi / float(res)
   ph0 = wp.pi * float(j) / float(res - 1)
   ph1 = wp.pi * float(j + 1) / float(res - 1)
-  pv = hull_point(ms, mesh, v)
-  for k in range(ms.nbr_num[g]):
-    a = pv - hull_point(ms, mesh, ms.nbr[ms.nbr_adr[g] + k])
-    if min_on_quad(a, th0, th1, ph0, ph1) < 0.0:
-      return
-  field_out[cell] = wp.uint16(v | CERTIFIED)
+  for c in range(4):
+    if c > 0 and corners[c] == corners[c - 1]:
+      continue  # neighbours already checked
+    g = ms.hull_adr[mesh] + corners[c]
+    if ms.nbr_num[g] == 0:
+      return  # no hull graph: nothing to prove it with
+    for k in range(ms.nbr_num[g]):
+      n = ms.nbr[ms.nbr_adr[g] + k]
+      if not _beaten_on_quad(ms, mesh, corners, n, th0, th1, ph0, ph1):
+        return
+  v = corners[0]
+  if corners[1] == v and corners[2] == v and corners[3] == v:
+    field_out[cell] = wp.uint16(v | CERTIFIED)
+  else:
+    field_out[cell] = wp.uint16(v | CORNERS_EXACT)
 
 
 def extreme_vertices(hd: HullData, vert: np.ndarray, vertadr: np.ndarray) -> np.ndarray:
@@ -344,10 +397,13 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.hull_num = arr(hd.hull_num)
   ms.hull_center = arr(hd.hull_center, wp.vec3)
   ms.hull_vert = arr(hd.hull_vert)
+  host_vert = vert.numpy()
+  mesh_of_hull = np.repeat(np.arange(len(hd.hull_num)), hd.hull_num)
+  ms.hull_pos = arr(host_vert[vertadr[mesh_of_hull] + hd.hull_vert].reshape(-1, 3), wp.vec3)
   ms.nbr_adr = arr(hd.nbr_adr)
   ms.nbr_num = arr(hd.nbr_num)
   ms.nbr = arr(hd.nbr)
-  extremes = wp.array(extreme_vertices(hd, vert.numpy(), vertadr), dtype=int, device=device)
+  extremes = wp.array(extreme_vertices(hd, host_vert, vertadr), dtype=int, device=device)
   if adaptive:
     field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)
   else:

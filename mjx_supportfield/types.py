@@ -20,7 +20,8 @@ class MeshSupport:
   """Convex-hull data and support fields of all meshes, flattened with per-mesh offsets.
 
   Hull vertices are numbered globally (``hull_adr[mesh] + local``); the field stores local
-  indices so one cell costs 4 bytes.
+  indices so one cell costs 2 bytes. ``hull_pos`` copies the hull vertices' positions out of
+  ``vert`` at install, so a support query gathers a point with one read instead of two.
   """
 
   vert: wp.array(dtype=wp.vec3)  # MuJoCo's mesh_vert, mesh frame
@@ -29,6 +30,7 @@ class MeshSupport:
   hull_num: wp.array(dtype=int)  # per mesh: number of hull vertices
   hull_center: wp.array(dtype=wp.vec3)  # per mesh: mean of the hull vertices (interior point)
   hull_vert: wp.array(dtype=int)  # per hull vertex: vertex index within its mesh
+  hull_pos: wp.array(dtype=wp.vec3)  # per hull vertex: its position, mesh frame
   nbr_adr: wp.array(dtype=int)  # per hull vertex: first neighbour in nbr
   nbr_num: wp.array(dtype=int)  # per hull vertex: number of neighbours
   nbr: wp.array(dtype=int)  # neighbour hull vertices (local indices)

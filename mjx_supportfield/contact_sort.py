@@ -11,9 +11,9 @@ CUDA graph); unused slots get a key past every real one and stay at the end.
 """
 
 import dataclasses
-from typing import Any
 
 import warp as wp
+from mujoco_warp._src.types import vec5
 
 # contact fields the collision stage writes (efc_address is -1 and surfacevel is computed later)
 FIELDS = (
@@ -22,13 +22,50 @@ FIELDS = (
 )  # fmt: skip
 
 
+@wp.struct
+class ContactFields:
+  """The fields of FIELDS, as arrays (flex, elem and vert are empty in models without flexes).
+
+  One typed kernel moves them all: Warp 1.19 replays a CPU graph's launches of one generic
+  kernel with the function of its last captured overload, so a generic per-field copy is
+  wrong under capture there.
+  """
+
+  dist: wp.array(dtype=float)
+  pos: wp.array(dtype=wp.vec3)
+  frame: wp.array(dtype=wp.mat33)
+  includemargin: wp.array(dtype=float)
+  friction: wp.array(dtype=vec5)
+  solref: wp.array(dtype=wp.vec2)
+  solreffriction: wp.array(dtype=wp.vec2)
+  solimp: wp.array(dtype=vec5)
+  dim: wp.array(dtype=int)
+  geom: wp.array(dtype=wp.vec2i)
+  flex: wp.array(dtype=wp.vec2i)
+  elem: wp.array(dtype=wp.vec2i)
+  vert: wp.array(dtype=wp.vec2i)
+  worldid: wp.array(dtype=int)
+  type: wp.array(dtype=int)
+  geomcollisionid: wp.array(dtype=int)
+  adhesion: wp.array(dtype=float)
+
+
+def contact_fields(arrays: dict) -> ContactFields:
+  """A ContactFields over the given arrays (field name -> array)."""
+  out = ContactFields()
+  for f in FIELDS:
+    setattr(out, f, arrays[f])
+  return out
+
+
 @dataclasses.dataclass
 class SortBuffers:
   """Keys, permutation and a copy of the contact fields of one Data (made on first use)."""
 
   keys: wp.array  # int64, 2 x naconmax (the radix sort's scratch half included)
   index: wp.array  # int32, 2 x naconmax
-  copy: dict  # field name -> array shaped like d.contact.<field> (fields sized naconmax)
+  contact: ContactFields  # d.contact's fields
+  copy: ContactFields  # a copy of them, shaped alike
   end_bit: int  # key bits the sort looks at
 
 
@@ -37,11 +74,12 @@ def make_buffers(d, ngeom: int) -> SortBuffers:
   n = d.naconmax
   device = d.contact.dist.device
   nkey = d.nworld * (ngeom + 1) * (ngeom + 1)  # the sentinel key of an unused slot
+  fields = {f: getattr(d.contact, f) for f in FIELDS}
   return SortBuffers(
     keys=wp.zeros(2 * n, dtype=wp.int64, device=device),
     index=wp.zeros(2 * n, dtype=wp.int32, device=device),
-    # flex, elem and vert are empty in models without flexes
-    copy={f: wp.empty_like(getattr(d.contact, f)) for f in FIELDS if getattr(d.contact, f).shape[0] == n},
+    contact=contact_fields(fields),
+    copy=contact_fields({f: wp.empty_like(a) for f, a in fields.items()}),
     end_bit=max(1, int(nkey).bit_length()),
   )
 
@@ -67,18 +105,43 @@ def _sort_keys(
   keys_out[i] = (wp.int64(worldid[i]) * n + wp.int64(g[0] + 1)) * n + wp.int64(g[1] + 1)
 
 
+@wp.func
+def _move(src: ContactFields, i: int, dst: ContactFields, j: int):
+  """dst[j] = src[i] for every field."""
+  dst.dist[j] = src.dist[i]
+  dst.pos[j] = src.pos[i]
+  dst.frame[j] = src.frame[i]
+  dst.includemargin[j] = src.includemargin[i]
+  dst.friction[j] = src.friction[i]
+  dst.solref[j] = src.solref[i]
+  dst.solreffriction[j] = src.solreffriction[i]
+  dst.solimp[j] = src.solimp[i]
+  dst.dim[j] = src.dim[i]
+  dst.geom[j] = src.geom[i]
+  if src.flex.shape[0] > 0:
+    dst.flex[j] = src.flex[i]
+    dst.elem[j] = src.elem[i]
+    dst.vert[j] = src.vert[i]
+  dst.worldid[j] = src.worldid[i]
+  dst.type[j] = src.type[i]
+  dst.geomcollisionid[j] = src.geomcollisionid[i]
+  dst.adhesion[j] = src.adhesion[i]
+
+
 @wp.kernel(enable_backward=False)
-def _gather(
-  naconmax: int,
-  nacon: wp.array(dtype=int),
-  index: wp.array(dtype=wp.int32),
-  src: wp.array(dtype=Any),
-  dst: wp.array(dtype=Any),
-):
-  """Slot i of a contact field takes slot index[i] of its copy."""
+def _copy(naconmax: int, nacon: wp.array(dtype=int), src: ContactFields, dst: ContactFields):
   i = wp.tid()
   if i < wp.min(nacon[0], naconmax):
-    dst[i] = src[index[i]]
+    _move(src, i, dst, i)
+
+
+@wp.kernel(enable_backward=False)
+def _gather(naconmax: int, nacon: wp.array(dtype=int), index: wp.array(dtype=wp.int32), src: ContactFields,
+            dst: ContactFields):
+  """Slot i of every contact field takes slot index[i] of the copy."""
+  i = wp.tid()
+  if i < wp.min(nacon[0], naconmax):
+    _move(src, index[i], dst, i)
 
 
 def sort_contacts(d, buf: SortBuffers, ngeom: int) -> None:
@@ -91,6 +154,5 @@ def sort_contacts(d, buf: SortBuffers, ngeom: int) -> None:
   wp.launch(_sort_keys, dim=n, inputs=[ngeom + 1, wp.int64(nkey), n, d.nacon, c.worldid, c.geom],
             outputs=[buf.keys, buf.index])
   wp.utils.radix_sort_pairs(buf.keys, buf.index, n, end_bit=buf.end_bit)
-  for f, copy in buf.copy.items():
-    wp.copy(copy, getattr(c, f))
-    wp.launch(_gather, dim=n, inputs=[n, d.nacon, buf.index, copy], outputs=[getattr(c, f)])
+  wp.launch(_copy, dim=n, inputs=[n, d.nacon, buf.contact], outputs=[buf.copy])
+  wp.launch(_gather, dim=n, inputs=[n, d.nacon, buf.index, buf.copy], outputs=[buf.contact])

@@ -1,18 +1,26 @@
 """The whole benchmark suite on the GPU: every scene, plugin vs stock MuJoCo Warp in one process.
 
   python benchmarks/run_suite.py [--only SCENE ...] [--launches N] [--out benchmarks/results]
+                                 [--compile-jobs N]
 
 Writes <out>/<date>-<gpu>.json (the bench rows of every scene, install times and the
-broad-phase scaling) and <out>/<date>-<gpu>.png. Missing generated scenes are written first
-(make_scenes.py).
+broad-phase scaling; rewritten after each scene, so a run cut short keeps what it measured)
+and <out>/<date>-<gpu>.png. Missing generated scenes are written first (make_scenes.py).
+
+Compiling MuJoCo Warp's step and the plugin for a new scene takes minutes on the first run;
+``--compile-jobs N`` first runs every scene once, N scenes at a time in separate processes
+(``--compile-only``), so the kernels compile in parallel into Warp's cache before the timed
+runs, which then go one scene at a time.
 """
 
 import argparse
 import datetime
 import json
 import os
+import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import mujoco
 import mujoco_warp as mjw
@@ -78,6 +86,21 @@ def broadphase_ms(path: str, nworld: int, launches: int) -> dict:
   return {"ngeom": mjm.ngeom, "nworld": nworld, "ms": ms, "pairs_per_world": int(st.npair.numpy()[0]) / nworld}
 
 
+def compile_all(names: list[str], jobs: int) -> dict:
+  """Runs each scene once (both implementations, 64 worlds) in ``jobs`` parallel processes, so
+  every kernel is in Warp's cache before timing. Returns each scene's exit status."""
+
+  def one(name):
+    cmd = [sys.executable, os.path.abspath(__file__), "--compile-only", "--only", name]
+    t = time.perf_counter()
+    rc = subprocess.run(cmd, stdout=subprocess.DEVNULL).returncode
+    print(f"compiled {name}: exit {rc} after {time.perf_counter() - t:.0f} s", flush=True)
+    return rc
+
+  with ThreadPoolExecutor(jobs) as pool:
+    return dict(zip(names, pool.map(one, names)))
+
+
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--only", nargs="*", choices=sorted(SCENES), help="scenes to run (default: all)")
@@ -85,25 +108,33 @@ def main(argv=None):
   p.add_argument("--launches", type=int, default=100)
   p.add_argument("--out", default=os.path.join(HERE, "results"))
   p.add_argument("--suffix", default="", help="appended to the results' file names (runs split over calls)")
+  p.add_argument("--compile-jobs", type=int, default=0, help="compile the scenes in N parallel processes first")
+  p.add_argument("--compile-only", action="store_true", help="run each scene once at 64 worlds, time nothing")
   args = p.parse_args(argv)
   wp.config.log_level = wp.LOG_WARNING
   names = args.only or list(SCENES)
   if any(not os.path.exists(SCENES[n][0]) for n in names):
     make_scenes.main()
+  if args.compile_only:
+    for name in names:
+      bench.bench_scene(SCENES[name][0], [64], 1, 200, None, Options())
+    return
+  if args.compile_jobs:
+    compile_all(names, args.compile_jobs)
 
   plan = {n: (SCENES[n][0], args.nworld or SCENES[n][1]) for n in names}
   progress = bench.Progress(sum(2 * len(nw) for _, nw in plan.values()))
   rows, installs, scaling = [], {}, []
+  gpu = bench.device_name()
+  stem = os.path.join(args.out, f"{datetime.date.today()}-{gpu.split()[-1].lower()}{args.suffix}")
   for name, (path, nworlds) in plan.items():
     installs[name] = install_seconds(path)
     rows += bench.bench_scene(path, nworlds, args.launches, 200, None, Options(), progress)
     if name in BROADPHASE_SCENES:
       scaling.append(broadphase_ms(path, nworlds[0], args.launches))
     print(f"\n{bench.format_table([r for r in rows if r.scene == bench.scene_name(path)])}", flush=True)
+    bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling})
 
-  gpu = bench.device_name()
-  stem = os.path.join(args.out, f"{datetime.date.today()}-{gpu.split()[-1].lower()}{args.suffix}")
-  bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling})
   try:
     bench.plot([r.__dict__ for r in rows], stem + ".png")
   except ImportError:

@@ -172,6 +172,9 @@ class Collider:
           f"mjx_supportfield: Data.{field} has shape {tuple(shape)} but the model needs (nworld, {want});"
           " was this Data made for another model?"
         )
+    if d.qpos.device != self.device:
+      raise ValueError(f"mjx_supportfield: Data is on {d.qpos.device} but the model it steps with was installed on"
+                       f" {self.device}; make both on one device (wp.ScopedDevice)")
 
   def _make_state(self, d) -> DataState:
     nworld = d.nworld
@@ -218,7 +221,14 @@ class Collider:
   # --- the collision stage ---------------------------------------------------------------
 
   def collision(self, m, d, awake_prev: Optional[wp.array] = None):
-    """AABBs -> sweep-and-prune -> narrow phase, writing into ``d.contact`` / ``d.nacon``."""
+    """AABBs -> sweep-and-prune -> narrow phase, writing into ``d.contact`` / ``d.nacon``.
+
+    Runs on the model's device whatever the current device is, so models on several GPUs can
+    be stepped from one thread."""
+    with wp.ScopedDevice(self.device):
+      self._collision(m, d, awake_prev)
+
+  def _collision(self, m, d, awake_prev: Optional[wp.array]):
     if d.naconmax == 0 or m.opt.disableflags & (DisableBit.CONSTRAINT | DisableBit.CONTACT):
       d.nacon.zero_()
       return

@@ -21,6 +21,7 @@ from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
+from mjx_supportfield.multicontact import TILT_GROWTH
 from mjx_supportfield.multicontact import Patch
 from mjx_supportfield.multicontact import keep_first
 from mjx_supportfield.multicontact import patch_possible
@@ -447,8 +448,9 @@ def convex_kernel(use_gjk: bool):
         or geom_type[g2] == GeomType.SPHERE
         or geom_type[g2] == GeomType.ELLIPSOID
       )
-      if max_contacts > 1 and not one_point and extra.n == 0 and patch_possible(a, b, ms, res.normal, mc_perturbation):
-        # the tilts cost four more MPRs: queued for patch_kernel, which runs them on dense warps
+      tilt = mc_perturbation * TILT_GROWTH  # the steepest tilt perturbed_contacts tries
+      if max_contacts > 1 and not one_point and extra.n == 0 and patch_possible(a, b, ms, res.normal, tilt):
+        # the tilts cost four to eight more MPRs: queued for patch_kernel, which runs them on dense warps
         slot = wp.atomic_add(patch_count, 0, 1)
         patch_pair[slot] = cid
         patch_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)

@@ -108,6 +108,7 @@ def main(argv=None):
   p.add_argument("--launches", type=int, default=100)
   p.add_argument("--out", default=os.path.join(HERE, "results"))
   p.add_argument("--suffix", default="", help="appended to the results' file names (runs split over calls)")
+  p.add_argument("--options", default="{}", help="plugin Options as JSON, e.g. '{\"warm_start\": false}'")
   p.add_argument("--compile-jobs", type=int, default=0, help="compile the scenes in N parallel processes first")
   p.add_argument("--compile-only", action="store_true", help="run each scene once at 64 worlds, time nothing")
   args = p.parse_args(argv)
@@ -122,18 +123,21 @@ def main(argv=None):
   if args.compile_jobs:
     compile_all(names, args.compile_jobs)
 
+  options = Options.from_dict(json.loads(args.options))
   plan = {n: (SCENES[n][0], args.nworld or SCENES[n][1]) for n in names}
   progress = bench.Progress(sum(2 * len(nw) for _, nw in plan.values()))
   rows, installs, scaling = [], {}, []
+  os.makedirs(args.out, exist_ok=True)
   gpu = bench.device_name()
   stem = os.path.join(args.out, f"{datetime.date.today()}-{gpu.split()[-1].lower()}{args.suffix}")
   for name, (path, nworlds) in plan.items():
     installs[name] = install_seconds(path)
-    rows += bench.bench_scene(path, nworlds, args.launches, 200, None, Options(), progress)
+    rows += bench.bench_scene(path, nworlds, args.launches, 200, None, options, progress)
     if name in BROADPHASE_SCENES:
       scaling.append(broadphase_ms(path, nworlds[0], args.launches))
     print(f"\n{bench.format_table([r for r in rows if r.scene == bench.scene_name(path)])}", flush=True)
-    bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling})
+    bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling,
+                                                   "options": json.loads(args.options)})
 
   try:
     bench.plot([r.__dict__ for r in rows], stem + ".png")

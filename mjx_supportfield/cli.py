@@ -14,7 +14,11 @@ def _compare(args) -> int:
   from mjx_supportfield.compare import write_json
   from mjx_supportfield.options import Options
 
-  options = Options(support_mode=args.support_mode, support_res=args.support_res, narrowphase=args.narrowphase)
+  import json
+
+  extra = json.loads(args.options)
+  options = Options.from_dict({"support_mode": args.support_mode, "support_res": args.support_res,
+                               "narrowphase": args.narrowphase, **extra})
   with wp.ScopedDevice(args.device):
     report = compare(args.model, steps=args.steps, samples=args.samples, nworld=args.nworld, min_depth=args.min_depth,
                      options=options)
@@ -83,6 +87,7 @@ def _parser() -> argparse.ArgumentParser:
   c.add_argument("--support-mode", default="refined", help="field | refined | exact")
   c.add_argument("--support-res", type=int, default=180)
   c.add_argument("--narrowphase", default="mpr", help="mpr | gjk (the plugin's convex penetration solver)")
+  c.add_argument("--options", default="{}", help="further plugin Options as JSON, e.g. '{\"warm_start\": false}'")
   c.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
   c.add_argument("--json", default=None, help="write the full report here")
   c.add_argument("--check", action="store_true", help="exit 1 if a deep pair is missed or the median angle > 1 deg")

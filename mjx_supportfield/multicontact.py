@@ -6,7 +6,7 @@ patch; MPR finds the witness points there, A's is mapped back to A's true pose, 
 point is kept when it still penetrates along n and is not a duplicate of one already kept.
 A tilt that lands back on a point already found (the faces meet at a larger angle than eps,
 so the same vertex stays deepest) is retried once, TILT_GROWTH times steeper: 0.09 rad at the
-default eps, about the 5.1 degrees within which MuJoCo's multi-CCD takes two faces as touching.
+default eps, about the 0.089 rad within which MuJoCo's multi-CCD takes two faces as touching.
 """
 
 import warp as wp
@@ -144,9 +144,11 @@ def perturbed_contacts(
       pa = r.pos + 0.5 * r.depth * r.normal
       pb = r.pos - 0.5 * r.depth * r.normal
       pa = first.pos + wp.transpose(rot) @ (pa - first.pos)
-      # no patch point is deeper along n than the shapes' overlap along n: float32 noise of a
-      # steep tilt could otherwise make one
-      depth = wp.min(wp.dot(pa - pb, n), first.depth)
+      depth = wp.dot(pa - pb, n)
+      if attempt == 1:
+        # a steep tilt's point is no deeper than the first contact: its float32 noise made one
+        # deeper than the shapes' overlap
+        depth = wp.min(depth, first.depth)
       if depth <= 0.0:
         break
       pos = 0.5 * (pa + pb)

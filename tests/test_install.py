@@ -32,7 +32,7 @@ def pile_stock():
 
 
 def test_install_uninstall_restores_stock(pile_stock):
-  ref_sim, ref, ref_n = pile_stock
+  ref_sim, ref, _ = pile_stock
   sim = load("convex_pile", nworld=NWORLD)
   m, d = sim.m, sim.d
   assert sf.get_collider(m) is None
@@ -42,9 +42,8 @@ def test_install_uninstall_restores_stock(pile_stock):
   mjw.collision(m, d)  # the patched entry point dispatches to the plugin
   plugin = contact_records(d)
   assert sf.get_collider(m).stats(d)["pairs"] > 0
-  # the plugin gives one contact per mesh-mesh pair, stock several: the two must differ
+  # the plugin's contacts (points, depths, order) are not stock's: the two must differ
   assert plugin != ref
-  assert int(d.nacon.numpy()[0]) < ref_n
 
   # a model without the plugin keeps stock collision while another model has it
   d_other = mjw.put_data(ref_sim.mjm, ref_sim.mjd, nworld=NWORLD)
@@ -123,7 +122,7 @@ def pile_installed():
 
 
 def test_step_runs_plugin(pile_installed, pile_stock):
-  _, ref, ref_n = pile_stock
+  _, ref, _ = pile_stock
   sim = pile_installed
   m = sim.m
   # what the plugin alone gives at qpos0
@@ -138,7 +137,6 @@ def test_step_runs_plugin(pile_installed, pile_stock):
   mjw.step(m, d)
   # step's contacts are those of the state it started from
   assert contact_records(d) == expected
-  assert int(d.nacon.numpy()[0]) != ref_n
   assert sf.get_collider(m).stats(d)["pairs"] > 0
   for _ in range(4):
     mjw.step(m, d)

@@ -568,36 +568,45 @@ def interleave(keys: np.ndarray, rng) -> np.ndarray:
 
 
 def test_graph_capture_deterministic_contacts():
-  """With all of MuJoCo Warp's determinism bits: contacts of a captured step (a CUDA graph on a
-  GPU, Warp's CPU graph otherwise) equal the uncaptured ones bitwise, and two replays of the
-  graph from a reset give bitwise equal runs."""
+  """With all of MuJoCo Warp's determinism bits: the same states in give bitwise the same
+  contacts, in the same order, uncaptured and replayed from a graph (a CUDA graph on a GPU,
+  Warp's CPU graph otherwise), and again after a reset.
+
+  The states are fed in rather than stepped to: MuJoCo Warp's own step is not bitwise
+  repeatable on a GPU (benchmarks/determinism.py measured qpos 1e-7 apart after one step on an
+  H200, stock and plugin alike), so trajectories part ways for reasons outside the plugin."""
   nworld = 64 if HAS_CUDA else 4
   with wp.ScopedDevice(wp.get_device()):
     sim = load("convex_pile", nworld=nworld)
     m = sim.m
     sf.install(sim.mjm, m)
     m.opt.deterministic = DeterminismType.ALL
-    d_ref = mjw.make_data(sim.mjm, nworld=nworld)
-    d_cap = mjw.make_data(sim.mjm, nworld=nworld)
-    mjw.step(m, d_ref)  # loads every kernel and makes the per-Data state before capturing
-    mjw.step(m, d_cap)
+    d_traj, d_ref, d_cap = (mjw.make_data(sim.mjm, nworld=nworld) for _ in range(3))
+    states = []
+    for _ in range(5):
+      mjw.step(m, d_traj)
+      states.append((d_traj.qpos.numpy().copy(), d_traj.qvel.numpy().copy()))
+    mjw.fwd_position(m, d_ref)  # loads every kernel and makes the per-Data state before capturing
+    mjw.fwd_position(m, d_cap)
     with wp.ScopedCapture() as capture:
-      mjw.step(m, d_cap)
+      mjw.fwd_position(m, d_cap)
     runs = []
     for _ in range(2):
+      mjw.reset_data(m, d_ref)  # forgets the warm-start history: both Data start alike
       mjw.reset_data(m, d_cap)
-      mjw.reset_data(m, d_ref)
       run = []
-      for k in range(5):
+      for qpos, qvel in states:
+        for d in (d_ref, d_cap):
+          d.qpos.assign(qpos)
+          d.qvel.assign(qvel)
+        mjw.fwd_position(m, d_ref)
         wp.capture_launch(capture.graph)
-        mjw.step(m, d_ref)
         wp.synchronize()
-        run.append((all_contacts(d_cap), d_cap.qpos.numpy().copy()))
-        if k == 0:
-          assert same_arrays(run[0][0], all_contacts(d_ref))
+        ref, cap = all_contacts(d_ref), all_contacts(d_cap)
+        assert len(ref["dist"]) > 0 and same_arrays(ref, cap)
+        run.append(cap)
       runs.append(run)
-    for (c1, q1), (c2, q2) in zip(*runs):
-      assert same_arrays(c1, c2) and np.array_equal(q1, q2)
+    assert all(same_arrays(a, b) for a, b in zip(*runs))
     sf.uninstall(m)
 
 

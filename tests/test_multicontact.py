@@ -114,3 +114,32 @@ def test_stacked_meshes_rest(multi):
     assert cube < 2e-4 and cyl < 2e-5, (cube, cyl)
   else:
     assert cube > 1e-3  # documents why multi-contact is on by default
+
+
+
+SLANT_XML = f"""
+<mujoco>
+  <asset><mesh name="cube" vertex="{CUBE}"/></asset>
+  <worldbody>
+    <body pos="0 0 0.05"><freejoint/><geom name="lo" type="mesh" mesh="cube"/></body>
+    <body pos="0.01 0.02 {{z}}" axisangle="1 0.4 0 {{deg}}"><freejoint/><geom name="hi" type="mesh" mesh="cube"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("deg", [0.5, 1.5, 3.0, 4.5])
+@pytest.mark.parametrize("z", [0.1505, 0.1495])
+def test_slanted_faces_match_mujoco(deg, z):
+  """A cube slanted a few degrees on another: MuJoCo C's multi-CCD writes one to four points
+  (corner, edge or face contact, by angle and depth); the plugin writes as many, at the same
+  depths (its tilt retries 9x steeper when the first tilt lands back on the same corner)."""
+  sim = load(SLANT_XML.replace("{deg}", str(deg)).replace("{z}", str(z)))
+  sf.install(sim.mjm, sim.m)
+  sf.collision(sim.m, sim.d)
+  dist, pos, _ = _pair(sim, contacts(sim.d, 0), "lo", "hi")
+  mujoco.mj_forward(sim.mjm, sim.mjd)
+  ref = np.sort([sim.mjd.contact[i].dist for i in range(sim.mjd.ncon)])
+  assert len(dist) == len(ref), (dist, ref)
+  np.testing.assert_allclose(np.sort(dist), ref, atol=3e-5)
+  assert np.all(np.abs(pos[:, :2]) <= 0.05 + 1e-3) and np.all(np.abs(pos[:, 2] - 0.1) <= 0.01)

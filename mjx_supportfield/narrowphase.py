@@ -408,7 +408,12 @@ def convex_kernel(use_gjk: bool):
       key = g1 * geom_type.shape[0] + g2
       res = MprResult()
       res.hit = 0
-      if wp.static(use_gjk):
+      # a sphere or capsule is a point or segment grown by a radius: GJK on those cores gives the
+      # exact nearest surface points, where MPR's normal drifts for a small sphere sunk deep
+      core_pair = (geom_type[g1] == GeomType.SPHERE or geom_type[g1] == GeomType.CAPSULE
+                   or geom_type[g2] == GeomType.SPHERE or geom_type[g2] == GeomType.CAPSULE)
+      used_gjk = wp.static(use_gjk) or core_pair
+      if used_gjk:
         res = gjk_epa(a, b, ms, support_mode, scale, tolerance, iterations)
       else:
         last = wp.vec4(0.0)
@@ -430,7 +435,7 @@ def convex_kernel(use_gjk: bool):
       # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding
       # diameter): MPR's portal face need not be the nearest; the SDFs know the nearest surface
       # (EPA's depth is exact: the fallback only serves MPR)
-      if not wp.static(use_gjk) and needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
+      if not used_gjk and needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
         bare = a  # the SDFs measure the true surfaces; A keeps its margin band for multi-contact
         bare.inflate = 0.0
         fallback = sdf_contact(bare, b, ms, sdf, support_mode, 1.0e-4 * scale)
@@ -439,7 +444,7 @@ def convex_kernel(use_gjk: bool):
           res.normal = fallback.normal
           res.pos = fallback.pos + 0.5 * band * fallback.normal
           extra.n = -1  # a fallback contact is not perturbed
-      if warm_start and not wp.static(use_gjk):
+      if warm_start and not used_gjk:
         value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
         warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
       one_point = (

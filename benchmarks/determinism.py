@@ -30,17 +30,6 @@ from mjx_supportfield.install import install
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def contacts(d) -> dict:
-  """Host copies of the contact fields the collision stage writes (first nacon rows)."""
-  n = min(int(d.nacon.numpy()[0]), d.naconmax)
-  out = {}
-  for f in contact_sort.FIELDS:
-    a = getattr(d.contact, f)
-    if a.shape[0] == d.naconmax:
-      out[f] = a.numpy()[:n].copy()
-  return out
-
-
 def as_set(c: dict) -> np.ndarray:
   """The contacts as rows of raw bytes, sorted: equal when the same contacts come in any order."""
   n = len(c["dist"])
@@ -59,7 +48,7 @@ def run(m, d, steps: int, graph=None) -> list:
     else:
       wp.capture_launch(graph)
     wp.synchronize()
-    out.append((contacts(d), d.qpos.numpy().copy()))
+    out.append((contact_sort.host_contacts(d), d.qpos.numpy().copy()))
   return out
 
 

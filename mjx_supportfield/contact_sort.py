@@ -50,6 +50,13 @@ class ContactFields:
   adhesion: wp.array(dtype=float)
 
 
+def host_contacts(d) -> dict:
+  """Host copies of the FIELDS d.contact holds (flex fields only in models with flexes), first
+  min(nacon, naconmax) rows: for comparing contacts bit for bit."""
+  n = min(int(d.nacon.numpy()[0]), d.naconmax)
+  return {f: getattr(d.contact, f).numpy()[:n].copy() for f in FIELDS if getattr(d.contact, f).shape[0] == d.naconmax}
+
+
 def contact_fields(arrays: dict) -> ContactFields:
   """A ContactFields over the given arrays (field name -> array)."""
   out = ContactFields()

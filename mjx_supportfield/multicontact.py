@@ -14,7 +14,7 @@ from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.mpr import MprResult
-from mjx_supportfield.mpr import Vertex
+from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import mpr
 from mjx_supportfield.support import count_supports
 from mjx_supportfield.support import hull_point
@@ -127,6 +127,8 @@ def perturbed_contacts(
   frame = make_frame(n)
   t1 = wp.vec3(frame[1, 0], frame[1, 1], frame[1, 2])
   t2 = wp.vec3(frame[2, 0], frame[2, 1], frame[2, 2])
+  # every tilted MPR starts warm: looking along the first normal, from just behind the origin
+  q0 = behind_origin(n, first.depth, scale)
   for k in range(NPERTURB):
     axis = wp.normalize(wp.where(k < 2, t1 + t2, t1 - t2))
     angle = float(wp.where(k % 2 == 0, eps, -eps))
@@ -134,9 +136,6 @@ def perturbed_contacts(
       rot = wp.quat_to_matrix(wp.quat_from_axis_angle(axis, angle))
       angle *= TILT_GROWTH
       tilted = _tilted(a, first.pos, rot)
-      # warm start: look along the first normal, from just behind the origin
-      q0 = Vertex()
-      q0.v = -0.5 * wp.max(first.depth, 1.0e-6 * scale) * n
       r = mpr(tilted, b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
       if r.hit == 0:
         break

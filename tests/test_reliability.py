@@ -41,11 +41,7 @@ def geom_name_id(mjm, name: str) -> int:
   return int(mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, name))
 
 
-def all_contacts(d) -> dict:
-  """Host copies of every contact field the collision stage writes, first min(nacon, naconmax)."""
-  n = min(int(d.nacon.numpy()[0]), d.naconmax)
-  fields = [f for f in contact_sort.FIELDS if getattr(d.contact, f).shape[0] == d.naconmax]  # no flex: 3 are empty
-  return {f: getattr(d.contact, f).numpy()[:n].copy() for f in fields}
+all_contacts = contact_sort.host_contacts
 
 
 def same_arrays(a: dict, b: dict) -> bool:

@@ -4,6 +4,7 @@ import warp as wp
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.types import SUPPORT_EXACT
+from mjx_supportfield.types import SUPPORT_FIELD
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -15,12 +16,20 @@ def hull_point(ms: MeshSupport, mesh: int, local: int) -> wp.vec3:
 
 
 # a field cell is a 16-bit word: the local hull index of the cell's support vertex in the low
-# 14 bits and two flags about the quad spanned by cells (i, j) .. (i + 1, j + 1), both proven at
-# build time (support_field._certify): CERTIFIED, this vertex is the support for every direction
-# of the quad; CORNERS_EXACT, the best of the quad's 4 corner vertices is
+# 14 bits and a 2-bit code about the quad spanned by cells (i, j) .. (i + 1, j + 1), proven at
+# build time (support_field._certify):
+#   CERTIFIED      this vertex is the support for every direction of the quad (one read);
+#   CORNERS_EXACT  the best of the quad's 4 corner vertices is;
+#   WITH_EXTRAS    the best of the 4 corners and a few more vertices is: the low 14 bits then
+#                  point into the mesh's ``extra`` list, which holds the cell's own vertex (its
+#                  low 14 bits) with the number of extra vertices above them, then those vertices.
 CERTIFIED = 0x8000
 CORNERS_EXACT = 0x4000
+WITH_EXTRAS = 0xC000
+PROOF_MASK = 0xC000
 INDEX_MASK = 0x3FFF
+EXTRA_COUNT_SHIFT = 14
+MAX_EXTRAS = 3  # extra vertices a quad may list (2 bits of count)
 
 
 @wp.func
@@ -30,8 +39,17 @@ def field_word(ms: MeshSupport, mesh: int, i: int, j: int) -> int:
 
 
 @wp.func
+def _extras_head(ms: MeshSupport, mesh: int, word: int) -> int:
+  """The first entry of the extras list a WITH_EXTRAS word points to."""
+  return int(ms.extra[ms.extra_adr[mesh] + (word & INDEX_MASK)])
+
+
+@wp.func
 def field_cell(ms: MeshSupport, mesh: int, i: int, j: int) -> int:
-  return field_word(ms, mesh, i, j) & INDEX_MASK
+  word = field_word(ms, mesh, i, j)
+  if (word & PROOF_MASK) == WITH_EXTRAS:
+    word = _extras_head(ms, mesh, word)
+  return word & INDEX_MASK
 
 
 @wp.func
@@ -44,11 +62,12 @@ def _cell_coords(ms: MeshSupport, mesh: int, d: wp.vec3) -> wp.vec2:
 
 
 @wp.func
-def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3) -> tuple[int, bool]:
+def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3, with_extras: bool) -> tuple[int, bool]:
   """Support vertex from the field for direction d (mesh frame), and whether it is proven exact.
 
   A certified quad answers with one read; otherwise the best of its 4 corner cells, which is
-  exact where the quad is flagged CORNERS_EXACT.
+  exact where the quad is flagged CORNERS_EXACT; ``with_extras`` also weighs the listed extra
+  vertices of a WITH_EXTRAS quad, which makes it exact there too.
   """
   res = ms.field_res[mesh]
   uv = _cell_coords(ms, mesh, d)
@@ -59,19 +78,29 @@ def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3) -> tuple[int, bool]:
   j1 = wp.min(j0 + 1, res - 1)
 
   word = field_word(ms, mesh, i0, j0)
+  proof = word & PROOF_MASK
+  if proof == CERTIFIED:
+    return word & INDEX_MASK, True
+  extras_at = int(0)
+  nextra = int(0)
+  if proof == WITH_EXTRAS:
+    extras_at = ms.extra_adr[mesh] + (word & INDEX_MASK)
+    word = int(ms.extra[extras_at])
+    if with_extras:
+      nextra = word >> EXTRA_COUNT_SHIFT
   best = word & INDEX_MASK
-  if word & CERTIFIED:
-    return best, True
   best_dot = wp.dot(hull_point(ms, mesh, best), d)
-  for k in range(3):
-    i = wp.where(k == 1, i0, i1)
-    j = wp.where(k == 0, j0, j1)
-    c = field_cell(ms, mesh, i, j)
+  for k in range(3 + nextra):
+    c = int(0)
+    if k < 3:
+      c = field_cell(ms, mesh, wp.where(k == 1, i0, i1), wp.where(k == 0, j0, j1))
+    else:
+      c = int(ms.extra[extras_at + k - 2])
     cd = wp.dot(hull_point(ms, mesh, c), d)
     if cd > best_dot:
       best = c
       best_dot = cd
-  return best, (word & CORNERS_EXACT) != 0
+  return best, proof == CORNERS_EXACT or (proof == WITH_EXTRAS and with_extras)
 
 
 @wp.func
@@ -114,8 +143,8 @@ def mesh_support_index(ms: MeshSupport, mesh: int, d: wp.vec3, mode: int) -> int
   """Local hull index of the support vertex of a mesh in direction d (mesh frame)."""
   if mode == SUPPORT_EXACT or ms.field_res[mesh] == 0:
     return hull_scan(ms, mesh, d)
-  best, certified = field_lookup(ms, mesh, d)
-  if mode == SUPPORT_REFINED and not certified:
+  best, proven = field_lookup(ms, mesh, d, mode != SUPPORT_FIELD)
+  if mode == SUPPORT_REFINED and not proven:
     best = hill_climb(ms, mesh, best, d)
   return best
 

@@ -5,7 +5,9 @@ A field is a lat-long grid of ``res x res`` directions per mesh; each cell store
 gathered from MuJoCo's ``mesh_vert``), so a cell costs 2 bytes instead of the seed's 16.
 The two top bits carry proofs made at build time about the cell's quad: CERTIFIED, its vertex
 is the support for every direction between the quad's 4 corners (a query needs one read);
-CORNERS_EXACT, the best of the 4 corner vertices is (a query needs no climb).
+CORNERS_EXACT, the best of the 4 corner vertices is (a query needs no climb); WITH_EXTRAS, the
+best of the corners and up to 3 listed vertices is (the quads of a fine hull where a vertex's
+normal cone is smaller than a cell and no corner sees it; the lists cost 2 bytes a vertex).
 Geoms that share a mesh share its field. Each mesh gets one resolution step above the
 smallest (up to 64) at which the plain 4-cell lookup (``support_mode="field"``) returns the
 exact support on a dense check set (4 directions inside every cell plus random ones), else
@@ -21,7 +23,11 @@ import warp as wp
 
 from mjx_supportfield.support import CERTIFIED
 from mjx_supportfield.support import CORNERS_EXACT
+from mjx_supportfield.support import EXTRA_COUNT_SHIFT
 from mjx_supportfield.support import INDEX_MASK
+from mjx_supportfield.support import MAX_EXTRAS
+from mjx_supportfield.support import PROOF_MASK
+from mjx_supportfield.support import WITH_EXTRAS
 from mjx_supportfield.support import field_cell
 from mjx_supportfield.support import field_lookup
 from mjx_supportfield.support import hill_climb
@@ -143,7 +149,7 @@ def _check_field(
   k = wp.tid()
   mesh = check_mesh[k]
   d = check_dir[k]
-  found, _ = field_lookup(ms, mesh, d)
+  found, _ = field_lookup(ms, mesh, d, False)
   # hill-climbing on the hull graph is exact and cheaper than a scan; without a graph, scan
   if ms.nbr_num[ms.hull_adr[mesh] + found] > 0:
     truth = hill_climb(ms, mesh, found, d)
@@ -176,6 +182,8 @@ def _layout(ms: MeshSupport, field_res: np.ndarray, device) -> np.ndarray:
   ms.field_res = wp.array(field_res.astype(np.int32), dtype=int, device=device)
   ms.field_adr = wp.array(adr[:-1].astype(np.int32), dtype=int, device=device)
   ms.field = wp.zeros(max(int(adr[-1]), 1), dtype=wp.uint16, device=device)
+  ms.extra_adr = wp.zeros(len(field_res), dtype=int, device=device)  # no extras lists until _prove
+  ms.extra = wp.zeros(1, dtype=wp.uint16, device=device)  # the end entry only
   return np.repeat(np.arange(len(field_res), dtype=np.int32), ncells)
 
 
@@ -230,29 +238,31 @@ def min_on_quad(a: wp.vec3, th0: float, th1: float, ph0: float, ph1: float) -> f
   return m
 
 
-_PROOF_SPLITS = 8  # a quad the corners do not cover as a whole is retried in 2x2, 4x4, 8x8 parts
+_PROOF_SPLITS = 8  # a quad the candidates do not cover as a whole is retried in 2x2, 4x4, 8x8 parts
+_MAX_CANDIDATES = 4 + MAX_EXTRAS
+_candidates = wp.types.vector(length=_MAX_CANDIDATES, dtype=int)
 
 
 @wp.func
-def _beaten_on_part(ms: MeshSupport, mesh: int, corners: wp.vec4i, pn: wp.vec3, th0: float, th1: float, ph0: float,
-                    ph1: float) -> bool:
-  """Whether one corner vertex beats the point pn for every direction of the quad part."""
-  for c in range(4):
-    if min_on_quad(hull_point(ms, mesh, corners[c]) - pn, th0, th1, ph0, ph1) >= 0.0:
+def _beaten_on_part(ms: MeshSupport, mesh: int, cand: _candidates, ncand: int, pn: wp.vec3, th0: float, th1: float,
+                    ph0: float, ph1: float) -> bool:
+  """Whether one candidate vertex beats the point pn for every direction of the quad part."""
+  for c in range(ncand):
+    if min_on_quad(hull_point(ms, mesh, cand[c]) - pn, th0, th1, ph0, ph1) >= 0.0:
       return True
   return False
 
 
 @wp.func
-def _beaten_on_quad(ms: MeshSupport, mesh: int, corners: wp.vec4i, n: int, th0: float, th1: float, ph0: float,
-                    ph1: float) -> bool:
-  """Whether, for every direction of the quad, some corner vertex beats vertex n.
+def _beaten_on_quad(ms: MeshSupport, mesh: int, cand: _candidates, ncand: int, n: int, th0: float, th1: float,
+                    ph0: float, ph1: float) -> bool:
+  """Whether, for every direction of the quad, some candidate vertex beats vertex n.
 
   Proven part by part: the quad as a whole, else split into 2x2, 4x4 and 8x8 parts, each of
-  which must have one corner vertex that beats n all over it.
+  which must have one candidate that beats n all over it.
   """
-  for c in range(4):
-    if corners[c] == n:
+  for c in range(ncand):
+    if cand[c] == n:
       return True
   pn = hull_point(ms, mesh, n)
   splits = int(1)
@@ -263,7 +273,7 @@ def _beaten_on_quad(ms: MeshSupport, mesh: int, corners: wp.vec4i, n: int, th0: 
     for k in range(splits * splits):
       a = th0 + dth * float(k % splits)
       b = ph0 + dph * float(k // splits)
-      if not _beaten_on_part(ms, mesh, corners, pn, a, a + dth, b, b + dph):
+      if not _beaten_on_part(ms, mesh, cand, ncand, pn, a, a + dth, b, b + dph):
         proven = False
         break
     if proven:
@@ -272,17 +282,37 @@ def _beaten_on_quad(ms: MeshSupport, mesh: int, corners: wp.vec4i, n: int, th0: 
   return False
 
 
-@wp.kernel
-def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16)):
-  """Flags the quads whose lookup is proven exact.
+@wp.func
+def _unbeaten_neighbour(ms: MeshSupport, mesh: int, cand: _candidates, ncand: int, th0: float, th1: float,
+                        ph0: float, ph1: float) -> int:
+  """A hull neighbour of a candidate that no candidate is proven to beat over the quad, or -1
+  when there is none; -2 when a candidate has no hull graph to prove anything with."""
+  for c in range(ncand):
+    g = ms.hull_adr[mesh] + cand[c]
+    if ms.nbr_num[g] == 0:
+      return -2
+    for k in range(ms.nbr_num[g]):
+      n = ms.nbr[ms.nbr_adr[g] + k]
+      if not _beaten_on_quad(ms, mesh, cand, ncand, n, th0, th1, ph0, ph1):
+        return n
+  return -1
 
-  Let w be the best of the quad's corner vertices for a direction d. If every hull neighbour of
-  every corner vertex is beaten, over the whole quad, by some corner vertex, then w beats all its
-  own neighbours at d, and on a convex hull a vertex that no neighbour beats is the support. So
-  the best of the 4 corners is exact in the quad (CORNERS_EXACT), and when the corners agree,
-  their vertex is (CERTIFIED, one read).
+
+@wp.kernel
+def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.array(dtype=int),
+             extras_out: wp.array2d(dtype=int)):
+  """Proves, per quad, which vertices its lookup must weigh to be exact.
+
+  Let w be the best of a candidate set S for a direction d. If every hull neighbour of every
+  vertex of S is beaten, over the whole quad, by some vertex of S, then w beats all its own
+  neighbours at d, and on a convex hull a vertex that no neighbour beats is the support. S
+  starts as the quad's 4 corner vertices; a neighbour that cannot be proven beaten joins S (it
+  is usually a vertex whose normal cone lies inside the quad, seen by no corner), up to
+  MAX_EXTRAS of them. proof_out: 0 unproven, 1 CERTIFIED (the corners agree and suffice),
+  2 CORNERS_EXACT, 2 + k the corners and the k vertices in extras_out suffice.
   """
   cell = wp.tid()
+  proof_out[cell] = 0
   mesh = cell_mesh[cell]
   res = ms.field_res[mesh]
   local = cell - ms.field_adr[mesh]
@@ -291,27 +321,92 @@ def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), field_out: wp.arra
   if j >= res - 1:
     return
   i1 = (i + 1) % res
-  corners = wp.vec4i(field_cell(ms, mesh, i, j), field_cell(ms, mesh, i1, j), field_cell(ms, mesh, i, j + 1),
-                     field_cell(ms, mesh, i1, j + 1))
+  cand = _candidates()
+  cand[0] = field_cell(ms, mesh, i, j)
+  cand[1] = field_cell(ms, mesh, i1, j)
+  cand[2] = field_cell(ms, mesh, i, j + 1)
+  cand[3] = field_cell(ms, mesh, i1, j + 1)
   th0 = 2.0 * wp.pi * float(i) / float(res) - wp.pi
   th1 = th0 + 2.0 * wp.pi / float(res)
   ph0 = wp.pi * float(j) / float(res - 1)
   ph1 = wp.pi * float(j + 1) / float(res - 1)
-  for c in range(4):
-    if c > 0 and corners[c] == corners[c - 1]:
-      continue  # neighbours already checked
-    g = ms.hull_adr[mesh] + corners[c]
-    if ms.nbr_num[g] == 0:
-      return  # no hull graph: nothing to prove it with
-    for k in range(ms.nbr_num[g]):
-      n = ms.nbr[ms.nbr_adr[g] + k]
-      if not _beaten_on_quad(ms, mesh, corners, n, th0, th1, ph0, ph1):
-        return
-  v = corners[0]
-  if corners[1] == v and corners[2] == v and corners[3] == v:
-    field_out[cell] = wp.uint16(v | CERTIFIED)
+  ncand = int(4)
+  while ncand <= _MAX_CANDIDATES:
+    n = _unbeaten_neighbour(ms, mesh, cand, ncand, th0, th1, ph0, ph1)
+    if n == -2:
+      return
+    if n == -1:
+      break
+    if ncand == _MAX_CANDIDATES:
+      return
+    cand[ncand] = n
+    ncand += 1
+  if ncand > 4:
+    proof_out[cell] = ncand - 2
+    for k in range(ncand - 4):
+      extras_out[cell, k] = cand[4 + k]
+  elif cand[1] == cand[0] and cand[2] == cand[0] and cand[3] == cand[0]:
+    proof_out[cell] = 1
   else:
+    proof_out[cell] = 2
+
+
+@wp.kernel
+def _extras_size(proof: wp.array(dtype=int), size_out: wp.array(dtype=int)):
+  """Entries a quad's extras list takes: its own vertex and its k extras."""
+  cell = wp.tid()
+  size_out[cell] = wp.where(proof[cell] > 2, proof[cell] - 1, 0)
+
+
+@wp.kernel
+def _write_proofs(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof: wp.array(dtype=int),
+                  extras: wp.array2d(dtype=int), offset: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16),
+                  extra_out: wp.array(dtype=wp.uint16)):
+  """Writes each quad's proof code into its cell word and its extras list into ``extra``."""
+  cell = wp.tid()
+  code = proof[cell]
+  v = int(field_out[cell])
+  if code == 1:
+    field_out[cell] = wp.uint16(v | CERTIFIED)
+  elif code == 2:
     field_out[cell] = wp.uint16(v | CORNERS_EXACT)
+  elif code > 2:
+    mesh = cell_mesh[cell]
+    start = offset[cell]
+    pointer = start - offset[ms.field_adr[mesh]]
+    if pointer > INDEX_MASK:
+      return  # the mesh's lists outgrew 14-bit pointers: this quad stays unproven (it climbs)
+    extra_out[start] = wp.uint16(v | ((code - 2) << EXTRA_COUNT_SHIFT))
+    for k in range(code - 2):
+      extra_out[start + 1 + k] = wp.uint16(extras[cell, k])
+    field_out[cell] = wp.uint16(pointer | WITH_EXTRAS)
+
+
+@wp.kernel
+def _mesh_extra_adr(field_adr: wp.array(dtype=int), offset: wp.array(dtype=int), total: int,
+                    extra_adr_out: wp.array(dtype=int)):
+  """Every mesh's lists start at the list offset of its first cell."""
+  mesh = wp.tid()
+  first = field_adr[mesh]
+  extra_adr_out[mesh] = wp.where(first < offset.shape[0], offset[wp.min(first, offset.shape[0] - 1)], total)
+
+
+def _prove(ms: MeshSupport, cells: wp.array, device):
+  """Runs _certify and packs its proofs into the field words and the extras lists."""
+  n = cells.shape[0]
+  proof = wp.empty(n, dtype=int, device=device)
+  extras = wp.zeros((n, MAX_EXTRAS), dtype=int, device=device)
+  wp.launch(_certify, dim=n, inputs=[ms, cells], outputs=[proof, extras], device=device)
+  size = wp.empty(n, dtype=int, device=device)
+  wp.launch(_extras_size, dim=n, inputs=[proof], outputs=[size], device=device)
+  offset = wp.empty(n, dtype=int, device=device)
+  wp.utils.array_scan(size, offset, inclusive=False)
+  total = int(offset[n - 1 :].numpy()[0] + size[n - 1 :].numpy()[0])
+  ms.extra = wp.zeros(total + 1, dtype=wp.uint16, device=device)  # + an unused end entry: never empty
+  wp.launch(_mesh_extra_adr, dim=ms.field_adr.shape[0], inputs=[ms.field_adr, offset, total], outputs=[ms.extra_adr],
+            device=device)
+  wp.launch(_write_proofs, dim=n, inputs=[ms, cells, proof, extras, offset], outputs=[ms.field, ms.extra],
+            device=device)
 
 
 def extreme_vertices(hd: HullData, vert: np.ndarray, vertadr: np.ndarray) -> np.ndarray:
@@ -331,7 +426,7 @@ def _build(ms: MeshSupport, field_res: np.ndarray, extremes: wp.array, device, c
     cells = wp.array(cell_mesh, dtype=int, device=device)
     wp.launch(_build_field, dim=len(cell_mesh), inputs=[ms, cells, extremes], outputs=[ms.field], device=device)
     if certify:
-      wp.launch(_certify, dim=len(cell_mesh), inputs=[ms, cells], outputs=[ms.field], device=device)
+      _prove(ms, cells, device)
 
 
 def choose_resolutions(ms: MeshSupport, hull_num: np.ndarray, cap: int, extremes: wp.array, device) -> np.ndarray:
@@ -408,11 +503,47 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
     field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)
   else:
     field_res = np.where(hd.hull_num > 0, res, 0)
-  _build(ms, np.asarray(field_res, dtype=np.int32), extremes, device, certify=True)
+  field_res = np.asarray(field_res, dtype=np.int32)
+  _build(ms, field_res, extremes, device, certify=True)
+  if adaptive:
+    _fit_budget(ms, field_res, 2 * res * res, extremes, device)
   return ms
 
 
+_BUDGET_ROUNDS = 4
+
+
+def _fit_budget(ms: MeshSupport, field_res: np.ndarray, budget: int, extremes: wp.array, device):
+  """Lowers the resolution of meshes whose cells and extras lists exceed ``budget`` bytes.
+
+  Fine hulls need extras lists on many quads; a slightly coarser grid pays for them, so no
+  field outgrows 2 bytes x support_res^2 (1/8 of the seed's 16 bytes a cell).
+  """
+  for _ in range(_BUDGET_ROUNDS):
+    nbytes = field_bytes(ms)
+    over = nbytes > budget
+    if not over.any():
+      return
+    lists = nbytes - 2 * field_res.astype(np.int64) ** 2
+    # the lists barely shrink with the grid: leave them 10 % more room than they take now
+    fit = np.floor(np.sqrt(np.maximum(budget - 1.1 * lists, 2 * 16) / 2)).astype(np.int32)
+    field_res[over] = np.minimum(field_res[over] - 1, fit[over])
+    _build(ms, field_res, extremes, device, certify=True)
+
+
+def decode_field(ms: MeshSupport) -> tuple[np.ndarray, np.ndarray]:
+  """Host copy of every cell's support vertex (local hull index) and its quad's proof code
+  (0, CERTIFIED, CORNERS_EXACT or WITH_EXTRAS)."""
+  mesh = np.repeat(np.arange(ms.field_res.shape[0]), ms.field_res.numpy().astype(np.int64) ** 2)
+  word = ms.field.numpy().astype(np.int64)[: len(mesh)]  # a model without fields keeps one unused cell
+  proof = word & PROOF_MASK
+  listed = proof == WITH_EXTRAS
+  word[listed] = ms.extra.numpy()[ms.extra_adr.numpy()[mesh[listed]] + (word[listed] & INDEX_MASK)]
+  return word & INDEX_MASK, proof
+
+
 def field_bytes(ms: MeshSupport) -> np.ndarray:
-  """Bytes of support field per mesh (cells only; 2 bytes a cell)."""
+  """Bytes of support field per mesh: its cells and its extras lists (2 bytes each)."""
   res = ms.field_res.numpy().astype(np.int64)
-  return res * res * wp.types.type_size_in_bytes(ms.field.dtype)
+  lists = np.diff(np.append(ms.extra_adr.numpy().astype(np.int64), ms.extra.shape[0] - 1))  # less the end entry
+  return (res * res + lists) * wp.types.type_size_in_bytes(ms.field.dtype)

@@ -36,7 +36,9 @@ class MeshSupport:
   nbr: wp.array(dtype=int)  # neighbour hull vertices (local indices)
   field_adr: wp.array(dtype=int)  # per mesh: first cell of its field
   field_res: wp.array(dtype=int)  # per mesh: field resolution (0: no field)
-  field: wp.array(dtype=wp.uint16)  # per cell: local hull index of the support vertex
+  field: wp.array(dtype=wp.uint16)  # per cell: local hull index of the support vertex, proof code
+  extra_adr: wp.array(dtype=int)  # per mesh: first entry of its extras lists in extra
+  extra: wp.array(dtype=wp.uint16)  # extras lists of WITH_EXTRAS quads (see support.py)
 
 
 @wp.struct

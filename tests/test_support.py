@@ -324,7 +324,7 @@ def test_field_cells_hold_cell_support(pile, mesh_supports):
   mjm, _ = pile
   for res in (8, 45):
     ms = mesh_supports[res]
-    field = ms.field.numpy().astype(np.int64) & support.INDEX_MASK  # the top bits carry proofs
+    field, _ = support_field.decode_field(ms)  # the top bits carry proofs
     adr = ms.field_adr.numpy()
     field_res = ms.field_res.numpy()
     hull_adr = ms.hull_adr.numpy()

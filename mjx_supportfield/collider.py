@@ -341,7 +341,7 @@ class Collider:
       warm = st.warm
       st.patch_count.zero_()
       if self.options.warm_start:
-        wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp])
+        wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp, warm.misses])
       wp.launch(
         narrowphase.convex_kernel(self.options.narrowphase == "gjk"),
         dim=nthread,
@@ -354,7 +354,7 @@ class Collider:
           self.options.mpr_refine, self.options.max_contacts_per_pair if self.options.multi_contact else 1,
           self.options.mc_perturbation, self.mesh_sdf,
           self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start, warm.stamp, warm.slot_stamp,
-          warm.slot_key, warm.slot_value, self.geom_nonconvex,
+          warm.slot_key, warm.slot_value, warm.misses, self.geom_nonconvex,
         ] + pair_inputs,
         outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
       )
@@ -413,12 +413,13 @@ class Collider:
 
     With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
     ``dropped_contacts`` counts the contacts beyond ``d.naconmax`` (all worlds together).
+    ``warm_start_misses`` counts the pairs whose warm-started MPR missed and ran again cold.
     """
     states = getattr(d, _STATE_ATTR, None)
     st = states.get(self) if states is not None else None
     if st is None:
       return {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
-              "dropped_contacts": 0}
+              "dropped_contacts": 0, "warm_start_misses": 0}
     return {
       "pairs": int(st.npair.numpy()[0]),
       "pairs_per_world": np.minimum(st.world_npair.numpy(), self.max_pairs).tolist(),
@@ -426,4 +427,5 @@ class Collider:
       "nonfinite_worlds": np.nonzero(st.nonfinite.numpy())[0].tolist(),
       # contacts found beyond d.naconmax (not stored; mjw.step flags OverflowType.NARROWPHASE)
       "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
+      "warm_start_misses": int(st.warm.misses.numpy()[0]) if self.options.warm_start else 0,
     }

@@ -36,6 +36,7 @@ from mjx_supportfield.types import Shape
 ANALYTIC_PAIRS = tuple(_PRIMITIVE_COLLISIONS.keys())
 
 NGEOMTYPE = len(GeomType)
+WARM_BEHIND = 0.02  # least distance of a warm start point behind the origin, x the pair's scale
 
 
 @functools.lru_cache(maxsize=None)
@@ -331,6 +332,7 @@ def convex_kernel(use_gjk: bool):
     ws_slot_stamp: wp.array2d(dtype=int),
     ws_slot_key: wp.array2d(dtype=int),
     ws_slot_value: wp.array2d(dtype=wp.vec4),
+    ws_misses: wp.array(dtype=int),
     geom_nonconvex: wp.array(dtype=int),
     npair_in: wp.array(dtype=int),
     pair_in: wp.array(dtype=wp.vec2i),
@@ -424,9 +426,13 @@ def convex_kernel(use_gjk: bool):
         for attempt in range(2):
           if attempt == 1 and (res.hit != 0 or last[3] <= 0.0):
             break
+          if attempt == 1:
+            wp.atomic_add(ws_misses, 0, 1)
           q0 = interior_point(a, b, scale)
           if attempt == 0 and last[3] > 0.0:
-            q0 = behind_origin(wp.vec3(last[0], last[1], last[2]), last[3], scale)
+            # start ~1 % of the pair's size behind the origin, not half a resting contact's few µm:
+            # that close, MPR's portal search is ill-conditioned, misses, and pays a cold retry
+            q0 = behind_origin(wp.vec3(last[0], last[1], last[2]), wp.max(last[3], WARM_BEHIND * scale), scale)
           res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
       if res.hit == 0:
         continue

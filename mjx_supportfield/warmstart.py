@@ -28,6 +28,7 @@ class WarmCache:
   slot_stamp: wp.array2d  # (nworld, nslot)
   slot_key: wp.array2d
   slot_value: wp.array2d  # vec4: normal, depth
+  misses: wp.array  # (1,) warm-started MPRs of the current call that missed and ran cold again
 
 
 def slots_per_world(npair: int) -> int:
@@ -42,13 +43,15 @@ def make_cache(nworld: int, nslot: int) -> WarmCache:
     slot_stamp=wp.full((nworld, nslot), NEVER, dtype=int),
     slot_key=wp.zeros((nworld, nslot), dtype=int),
     slot_value=wp.zeros((nworld, nslot), dtype=wp.vec4),
+    misses=wp.zeros(1, dtype=int),
   )
 
 
 @wp.kernel(enable_backward=False)
-def advance(stamp: wp.array(dtype=int)):
+def advance(stamp: wp.array(dtype=int), misses: wp.array(dtype=int)):
   """Starts a new collision call (a kernel, so it runs inside a captured graph)."""
   stamp[0] = stamp[0] + 1
+  misses[0] = 0
 
 
 @wp.func

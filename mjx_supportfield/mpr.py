@@ -66,8 +66,27 @@ def _single_point(p: Vertex) -> MprResult:
 
 
 @wp.func
+def _on_segment(a: wp.vec3, b: wp.vec3, w: wp.vec3) -> float:
+  """Parameter t in [0, 1] of the point a + t (b - a) nearest to w."""
+  e = b - a
+  ee = wp.dot(e, e)
+  if ee <= 0.0:
+    return 0.0
+  return wp.clamp(wp.dot(w - a, e) / ee, 0.0, 1.0)
+
+
+@wp.func
 def _midpoint(p1: Vertex, p2: Vertex, p3: Vertex, w: wp.vec3) -> wp.vec3:
-  """Midpoint of the two shapes' points at w, a point of the portal triangle (barycentric)."""
+  """Midpoint of the two shapes' points at w, a point of the portal triangle (barycentric).
+
+  w (the origin's foot on the portal plane) can fall outside the final portal: MPR keeps the
+  ray from its interior point inside it, not the foot. On a thin portal (a cylinder's rim or a
+  hull's vertex against a long hull edge) the foot's barycentric coordinates then run far out
+  of [0, 1] (seen: -0.6 and 0.8 on a sliver along a 4 cm hull edge), and clamping them one after
+  the other picked a point of the portal over 2 cm from the foot: the contact point came out 11 mm
+  below the cylinder (tests/test_fuzz.py, REGRESSIONS). Outside the portal the nearest point of
+  its edges is interpolated instead; inside, the coordinates are the same as before.
+  """
   e1 = p2.v - p1.v
   e2 = p3.v - p1.v
   r = w - p1.v
@@ -80,8 +99,23 @@ def _midpoint(p1: Vertex, p2: Vertex, p3: Vertex, w: wp.vec3) -> wp.vec3:
   if det > 0.0:
     r1 = wp.dot(r, e1)
     r2 = wp.dot(r, e2)
-    l2 = wp.clamp((d22 * r1 - d12 * r2) / det, 0.0, 1.0)
-    l3 = wp.clamp((d11 * r2 - d12 * r1) / det, 0.0, 1.0 - l2)
+    l2 = (d22 * r1 - d12 * r2) / det
+    l3 = (d11 * r2 - d12 * r1) / det
+    if not (l2 >= 0.0 and l2 <= 1.0 and l3 >= 0.0 and l3 <= 1.0 - l2):  # outside (or NaN)
+      t12 = _on_segment(p1.v, p2.v, w)
+      t13 = _on_segment(p1.v, p3.v, w)
+      t23 = _on_segment(p2.v, p3.v, w)
+      dist12 = wp.length(p1.v + t12 * e1 - w)
+      dist13 = wp.length(p1.v + t13 * e2 - w)
+      dist23 = wp.length(p2.v + t23 * (p3.v - p2.v) - w)
+      l2 = t12
+      l3 = 0.0
+      if dist13 < wp.min(dist12, dist23):
+        l2 = 0.0
+        l3 = t13
+      elif dist23 < dist12:
+        l2 = 1.0 - t23
+        l3 = t23
   l1 = 1.0 - l2 - l3
   return 0.5 * (l1 * (p1.a + p1.b) + l2 * (p2.a + p2.b) + l3 * (p3.a + p3.b))
 

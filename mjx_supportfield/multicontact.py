@@ -144,13 +144,17 @@ def perturbed_contacts(
       pb = r.pos - 0.5 * r.depth * r.normal
       pa = first.pos + wp.transpose(rot) @ (pa - first.pos)
       depth = wp.dot(pa - pb, n)
+      pos = 0.5 * (pa + pb)
       if attempt == 1:
         # a steep tilt's point is no deeper than the first contact: its float32 noise made one
         # deeper than the shapes' overlap
         depth = wp.min(depth, first.depth)
+        if wp.length(pos - first.pos) < min_spacing:
+          # the steeper tilt found the first contact again: keep MPR's exact point, not this copy
+          depth = first.depth
+          pos = first.pos
       if depth <= 0.0:
         break
-      pos = 0.5 * (pa + pb)
       dup = bool(False)
       for j in range(patch.n):
         if wp.length(pos - wp.vec3(patch.pos[j, 0], patch.pos[j, 1], patch.pos[j, 2])) < min_spacing:

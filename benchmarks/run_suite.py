@@ -50,6 +50,7 @@ SCENES = {  # name: (path, nworlds)
   "terrain_32": (os.path.join(HERE, "scenes", "terrain_32.xml"), [1024, 8192]),
 }
 BROADPHASE_SCENES = ("pile_32_128", "pile_256_128", "pile_1024_128")
+BROADPHASE_NWORLD = 256  # one world count for the broad-phase scaling, so only the geom count changes
 
 
 def install_seconds(path: str) -> dict:
@@ -134,7 +135,7 @@ def main(argv=None):
     installs[name] = install_seconds(path)
     rows += bench.bench_scene(path, nworlds, args.launches, 200, None, options, progress)
     if name in BROADPHASE_SCENES:
-      scaling.append(broadphase_ms(path, nworlds[0], args.launches))
+      scaling.append(broadphase_ms(path, BROADPHASE_NWORLD, args.launches))
     print(f"\n{bench.format_table([r for r in rows if r.scene == bench.scene_name(path)])}", flush=True)
     bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling,
                                                    "options": json.loads(args.options)})

@@ -2,18 +2,41 @@
 
   python benchmarks/soak.py [--scene benchmarks/scenes/pile_256_128.xml] [--nworld 1024]
                             [--steps 100000] [--chunk 500] [--minutes M] [--json OUT]
+                            [--save CK.npz [--save-every N]] [--resume CK.npz]
 
 The worlds start from the scene's initial state (every body dropped from rest), each with a
 small random velocity so they differ. Steps run ``chunk`` at a time from one captured graph
-(a CUDA graph on a GPU). After every chunk the run checks, over all worlds:
+(a CUDA graph on a GPU; a last, shorter chunk runs uncaptured). After every chunk the run checks,
+over all worlds:
   - qpos and qvel finite (a NaN anywhere is a failure);
   - total energy (MuJoCo's kinetic + potential) at most the largest initial energy plus 1 %
     of the scene's potential-energy span: a dropped pile only loses energy;
   - no overflow bit in d.overflow, no dropped broad-phase pairs.
-The run stops at ``steps`` or after ``minutes`` of wall time, and the JSON says which.
+The run stops at ``steps`` (in all, counted over every segment) or before a chunk that would end
+more than ``minutes`` after the script started (setup and compiling included; judged by the
+slowest chunk so far, the first chunk always runs), and the JSON says which.
+
+Segments. A run too long for one sitting runs as several segments: ``--save CK.npz`` writes a
+checkpoint when the segment stops (and every ``--save-every`` chunks, written atomically), and
+``--resume CK.npz`` continues it in a fresh process, counting steps from the saved count up to
+``--steps`` in all. The checkpoint holds each world's time, qpos, qvel, act and qacc_warmstart (the
+solver's warm start), the energy bound's references (initial energies, potential span, bound),
+nconmax, the scene's path and sha256, nworld, the steps done, and the history (segments, chunks,
+wall seconds, worst energy, overflow bits, dropped pairs, failures, the trace). A resume refuses a
+scene whose sha256 differs or an ``--nworld`` / ``--nconmax`` that differs from the checkpoint's.
+The state is written into a fresh Data from ``mjw.put_data``, then ``mjw.forward`` recomputes
+everything derived from it. Not carried over: the plugin's caches (MPR warm-start normals,
+sweep-and-prune order) start cold, so a resumed run is not bitwise the run that never stopped
+(with ``Options(warm_start=False)`` it is, on the CPU); ctrl, applied forces and mocap stay at the
+model's defaults as in the first segment (the soak never sets them); the sleep state is not saved
+(the piles do not enable sleeping). qacc_warmstart is left out (the solver's first step after the
+resume starts cold, which moves the trajectory a little) when it would make the checkpoint's
+arrays larger than ``--save-max-mib``: 1024 worlds of the 256-mesh pile take 13 MiB for qpos and
+qvel and 6 more for qacc_warmstart, and zlib hardly shrinks them.
 """
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -35,6 +58,10 @@ from mjx_supportfield.install import get_collider  # noqa: E402
 from mjx_supportfield.install import install  # noqa: E402
 
 SPEED = 0.05  # m/s (and rad/s) of the random initial velocities
+STATE = ("time", "qpos", "qvel", "act")  # per-world state a checkpoint always holds
+WARMSTART = "qacc_warmstart"  # held too, unless the checkpoint would grow past --save-max-mib
+FORMAT = 1  # checkpoint format version
+MIB = 1 << 20
 
 
 def energy(d) -> np.ndarray:
@@ -42,86 +69,281 @@ def energy(d) -> np.ndarray:
   return d.energy.numpy().sum(axis=1)
 
 
-def main():
-  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--scene", default=os.path.join(HERE, "scenes", "pile_256_128.xml"))
-  p.add_argument("--nworld", type=int, default=1024)
-  p.add_argument("--steps", type=int, default=100_000)
-  p.add_argument("--chunk", type=int, default=500)
-  p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
-  p.add_argument("--nconmax", type=int, default=None,
-                 help="contacts per world (default: 2 x MuJoCo C's after 500 steps)")
-  p.add_argument("--json", default=None)
-  args = p.parse_args()
-  wp.config.log_level = wp.LOG_WARNING
-  if not os.path.exists(args.scene):
-    make_scenes.main()
+def fail(message: str):
+  """Exits with ``message`` on stderr and status 2 (failed checks exit with 1)."""
+  print(f"soak: {message}", file=sys.stderr)
+  sys.exit(2)
 
-  mjm = mujoco.MjModel.from_xml_path(args.scene)
-  mjm.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
+
+def scene_sha256(path: str) -> str:
+  """sha256 of the scene's XML text (the pile scenes hold their meshes inline)."""
+  with open(path, "rb") as f:
+    return hashlib.sha256(f.read()).hexdigest()
+
+
+def read_state(d, fields=STATE + (WARMSTART,)) -> dict:
+  """Host copies of the per-world state arrays ``fields`` of ``d``."""
+  return {f: getattr(d, f).numpy().copy() for f in fields}
+
+
+def write_state(d, state: dict):
+  """Writes the per-world arrays of ``state`` (as read_state gives them) into ``d``."""
+  for f, a in state.items():
+    dst = getattr(d, f)
+    if tuple(dst.shape) != a.shape:
+      raise ValueError(f"checkpoint's {f} has shape {a.shape}, the Data's {tuple(dst.shape)}")
+    if a.size:
+      dst.assign(a)
+
+
+def new_history() -> dict:
+  """The summaries a soak carries from segment to segment."""
+  return {"steps": 0, "segments": 0, "seconds": 0.0, "chunks": 0, "energy_max_seen": None,
+          "nonfinite_chunks": 0, "overflow_bits": 0, "dropped_pairs_max": 0, "failures": [], "trace": []}
+
+
+def fresh_start(mjm, m, nworld: int, nconmax_arg):
+  """Data for a new soak: scene's initial state, random velocities; and the energy references."""
   settled = bench.settled_state(mjm, 500)  # the pile mostly down: room for its contacts at rest
-  nconmax = args.nconmax or 2 * settled.ncon + 16
-  m = mjw.put_model(mjm)
-  install(mjm, m)
+  nconmax = nconmax_arg or 2 * settled.ncon + 16
   mjd = mujoco.MjData(mjm)
   mujoco.mj_forward(mjm, mjd)
-  d = mjw.put_data(mjm, mjd, nworld=args.nworld, nconmax=nconmax, njmax=6 * nconmax)
+  d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=nconmax, njmax=6 * nconmax)
   rng = np.random.default_rng(0)
-  d.qvel.assign((SPEED * rng.uniform(-1, 1, size=(args.nworld, mjm.nv))).astype(np.float32))
+  d.qvel.assign((SPEED * rng.uniform(-1, 1, size=(nworld, mjm.nv))).astype(np.float32))
   mjw.forward(m, d)
   e0 = energy(d)
   span = float(mjd.energy[0] - settled.energy[0])  # potential energy the pile can give up
-  limit = float(e0.max()) + 0.01 * abs(span)
-  collider = get_collider(m)
+  ref = {"nconmax": int(nconmax), "energy_initial": e0.tolist(), "energy_initial_max": float(e0.max()),
+         "potential_span": span, "energy_bound": float(e0.max()) + 0.01 * abs(span)}
+  return d, ref
 
-  def chunk():
-    for _ in range(args.chunk):
+
+def load_checkpoint(path: str) -> tuple:
+  """(meta, per-world state arrays) of a checkpoint written by save_checkpoint."""
+  if not os.path.exists(path):
+    fail(f"no checkpoint at {path}")
+  with np.load(path, allow_pickle=False) as z:
+    meta = json.loads(str(z["meta"]))
+    state = {k[len("state_"):]: z[k] for k in z.files if k.startswith("state_")}
+  if meta.get("format") != FORMAT:
+    fail(f"{path}: checkpoint format {meta.get('format')}, this script reads {FORMAT}")
+  return meta, state
+
+
+def check_resume(meta: dict, path: str, scene: str, sha: str, nworld, nconmax):
+  """Exits with an error when the run asked for is not the checkpoint's."""
+  bad = []
+  if sha != meta["scene_sha256"]:
+    bad.append(f"scene {scene} (sha256 {sha[:12]}) is not the checkpoint's {meta['scene']}"
+               f" (sha256 {meta['scene_sha256'][:12]})")
+  if nworld is not None and nworld != meta["nworld"]:
+    bad.append(f"--nworld {nworld} but the checkpoint has {meta['nworld']} worlds")
+  if nconmax is not None and nconmax != meta["ref"]["nconmax"]:
+    bad.append(f"--nconmax {nconmax} but the checkpoint used {meta['ref']['nconmax']}")
+  if bad:
+    fail(f"cannot resume from {path}: " + "; ".join(bad))
+  versions = {"warp": wp.__version__, "mujoco": mujoco.__version__}
+  if meta["versions"] != versions:
+    print(f"soak: warning: {path} was written with {meta['versions']}, this run has {versions}", file=sys.stderr)
+
+
+def resume_start(mjm, m, meta: dict, state: dict):
+  """Fresh Data holding the checkpoint's state, its derived quantities recomputed."""
+  nconmax = meta["ref"]["nconmax"]
+  mjd = mujoco.MjData(mjm)
+  mujoco.mj_forward(mjm, mjd)
+  d = mjw.put_data(mjm, mjd, nworld=meta["nworld"], nconmax=nconmax, njmax=6 * nconmax)
+  write_state(d, state)
+  mjw.forward(m, d)  # leaves qacc_warmstart alone: the next step starts from the saved one
+  return d
+
+
+def save_checkpoint(path: str, d, meta: dict, max_mib: float) -> dict:
+  """Writes ``meta`` and the state of ``d`` to ``path`` (through a temporary file, so an existing
+  checkpoint is replaced whole or not at all); returns what was written."""
+  state = read_state(d, STATE)
+  warm = read_state(d, (WARMSTART,))
+  if sum(a.nbytes for a in state.values()) + warm[WARMSTART].nbytes <= max_mib * MIB:
+    state.update(warm)
+  meta = dict(meta, warmstart_saved=WARMSTART in state)
+  tmp = path + ".tmp"
+  with open(tmp, "wb") as f:
+    np.savez_compressed(f, meta=np.array(json.dumps(meta)), **{f"state_{k}": v for k, v in state.items()})
+  os.replace(tmp, path)
+  return {"path": path, "mib": os.path.getsize(path) / MIB, "warmstart_saved": WARMSTART in state}
+
+
+def check_chunk(d, collider, nworld: int, limit: float) -> tuple:
+  """(trace row, list of failed checks) for the state of ``d`` after a chunk."""
+  qpos, qvel = d.qpos.numpy(), d.qvel.numpy()
+  finite = bool(np.isfinite(qpos).all() and np.isfinite(qvel).all())
+  e = energy(d)
+  overflow = int(np.bitwise_or.reduce(d.overflow.numpy().ravel()))
+  stats = collider.stats(d)
+  row = {"finite": finite, "energy_max": float(np.nanmax(e)), "energy_mean": float(np.nanmean(e)),
+         "overflow_bits": overflow, "dropped_pairs": int(sum(stats["dropped_pairs_per_world"])),
+         "contacts_per_world": min(int(d.nacon.numpy()[0]), d.naconmax) / nworld}
+  bad = []
+  if not finite:
+    bad.append("non-finite state")
+  if row["energy_max"] > limit:
+    bad.append(f"energy {row['energy_max']:.4g} > bound {limit:.4g}")
+  if overflow or row["dropped_pairs"]:
+    bad.append(f"overflow bits {overflow}, dropped pairs {row['dropped_pairs']}")
+  return row, bad
+
+
+def record(hist: dict, row: dict, bad: list):
+  """Adds a chunk's row and failed checks to the history."""
+  hist["trace"].append(row)
+  hist["chunks"] += 1
+  seen = hist["energy_max_seen"]
+  hist["energy_max_seen"] = row["energy_max"] if seen is None else max(seen, row["energy_max"])
+  hist["nonfinite_chunks"] += not row["finite"]
+  hist["overflow_bits"] |= row["overflow_bits"]
+  hist["dropped_pairs_max"] = max(hist["dropped_pairs_max"], row["dropped_pairs"])
+  if bad:
+    hist["failures"].append({"step": row["step"], "segment": row["segment"], "what": bad})
+
+
+def summary(hist: dict, ref: dict) -> dict:
+  """The history's summaries for the report (no trace, no failure list)."""
+  out = {k: v for k, v in hist.items() if k not in ("trace", "failures")}
+  out["failing_chunks"] = len(hist["failures"])
+  seen, bound = hist["energy_max_seen"], ref["energy_bound"]
+  out["energy_bound_ratio_worst"] = seen / bound if seen is not None and bound else None
+  return out
+
+
+def capture(m, d, nstep: int):
+  """A graph of ``nstep`` steps (None off CUDA). The step run to compile outside the capture is
+  undone (the state read back), so it counts for nothing."""
+  if not wp.get_device().is_cuda:
+    return None
+  state = read_state(d)
+  mjw.step(m, d)  # compile outside the capture
+  write_state(d, state)
+  with wp.ScopedCapture() as cap:
+    for _ in range(nstep):
       mjw.step(m, d)
+  write_state(d, state)  # capturing launches nothing, but keep the state plainly the one saved
+  return cap.graph
 
-  graph = None
-  if wp.get_device().is_cuda:
-    mjw.step(m, d)  # compile outside the capture
-    with wp.ScopedCapture() as capture:
-      chunk()
-    graph = capture.graph
-  t0 = time.perf_counter()
-  steps, failures, trace = 0, [], []
-  reason = "steps"
-  while steps < args.steps:
-    if graph is not None:
+
+def parse_args():
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("--scene", default=None, help="default: pile_256_128.xml, or the checkpoint's with --resume")
+  p.add_argument("--nworld", type=int, default=None, help="default 1024, or the checkpoint's with --resume")
+  p.add_argument("--steps", type=int, default=100_000, help="steps in all (over every segment)")
+  p.add_argument("--chunk", type=int, default=500)
+  p.add_argument("--minutes", type=float, default=None,
+                 help="stop before a chunk that would end this long after the start (setup and compile included)")
+  p.add_argument("--nconmax", type=int, default=None,
+                 help="contacts per world (default: 2 x MuJoCo C's after 500 steps, or the checkpoint's)")
+  p.add_argument("--json", default=None)
+  p.add_argument("--save", default=None, help="write a checkpoint (.npz) here when this segment stops")
+  p.add_argument("--save-every", type=int, default=0, help="also write it every N chunks (0: only at the end)")
+  p.add_argument("--save-max-mib", type=float, default=15.0,
+                 help="leave qacc_warmstart out if the state arrays would pass this size (uncompressed)")
+  p.add_argument("--resume", default=None, help="continue the soak saved in this checkpoint")
+  return p.parse_args()
+
+
+def scene_path(args, meta) -> str:
+  """The scene to load: --scene, else the checkpoint's (here, or by name in scenes/), else the default."""
+  if args.scene:
+    return args.scene
+  if meta is None:
+    return os.path.join(HERE, "scenes", "pile_256_128.xml")
+  if os.path.exists(meta["scene_path"]):
+    return meta["scene_path"]
+  return os.path.join(HERE, "scenes", meta["scene"])
+
+
+def main():
+  start = time.perf_counter()
+  args = parse_args()
+  wp.config.log_level = wp.LOG_WARNING
+  meta, state = load_checkpoint(args.resume) if args.resume else (None, None)
+  scene = scene_path(args, meta)
+  if not os.path.exists(scene):
+    make_scenes.main()
+  sha = scene_sha256(scene)
+  if meta is not None:
+    check_resume(meta, args.resume, scene, sha, args.nworld, args.nconmax)
+
+  mjm = mujoco.MjModel.from_xml_path(scene)
+  mjm.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
+  m = mjw.put_model(mjm)
+  install(mjm, m)
+  if meta is None:
+    nworld = args.nworld or 1024
+    d, ref = fresh_start(mjm, m, nworld, args.nconmax)
+    hist = new_history()
+  else:
+    nworld, ref, hist = meta["nworld"], meta["ref"], meta["history"]
+    d = resume_start(mjm, m, meta, state)
+    print(f"resumed {args.resume}: step {hist['steps']}, {hist['segments']} segment(s) before, "
+          f"warm start {'restored' if WARMSTART in state else 'not saved'}", flush=True)
+  limit = ref["energy_bound"]
+  collider = get_collider(m)
+  hist["segments"] += hist["steps"] < args.steps  # a resume with nothing left to run adds no segment
+  segment, steps0, seconds0 = hist["segments"], hist["steps"], hist["seconds"]
+
+  def checkpoint_meta():
+    return {"format": FORMAT, "scene": os.path.basename(scene), "scene_path": os.path.abspath(scene),
+            "scene_sha256": sha, "nworld": nworld, "steps_asked": args.steps, "ref": ref, "history": hist,
+            "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__}}
+
+  def run(n: int):
+    if graph is not None and n == args.chunk:
       wp.capture_launch(graph)
     else:
-      chunk()
-    steps += args.chunk
-    qpos, qvel = d.qpos.numpy(), d.qvel.numpy()
-    finite = bool(np.isfinite(qpos).all() and np.isfinite(qvel).all())
-    e = energy(d)
-    overflow = int(np.bitwise_or.reduce(d.overflow.numpy().ravel()))
-    stats = collider.stats(d)
-    row = {"step": steps, "seconds": time.perf_counter() - t0, "finite": finite, "energy_max": float(np.nanmax(e)),
-           "energy_mean": float(np.nanmean(e)), "overflow_bits": overflow,
-           "dropped_pairs": int(sum(stats["dropped_pairs_per_world"])), "contacts_per_world": min(int(d.nacon.numpy()[0]), d.naconmax) / args.nworld}
-    trace.append(row)
-    bad = []
-    if not finite:
-      bad.append("non-finite state")
-    if row["energy_max"] > limit:
-      bad.append(f"energy {row['energy_max']:.4g} > bound {limit:.4g}")
-    if overflow or row["dropped_pairs"]:
-      bad.append(f"overflow bits {overflow}, dropped pairs {row['dropped_pairs']}")
-    if bad:
-      failures.append({"step": steps, "what": bad})
-    print(f"step {steps:7d}  {row['seconds']:7.1f} s  energy max {row['energy_max']:.5g} mean {row['energy_mean']:.5g}"
-          f"  contacts/world {row['contacts_per_world']:.1f}  {'; '.join(bad) or 'ok'}", flush=True)
-    if args.minutes and time.perf_counter() - t0 > 60 * args.minutes:
+      for _ in range(n):
+        mjw.step(m, d)
+
+  graph = capture(m, d, args.chunk) if hist["steps"] < args.steps else None
+  t0 = time.perf_counter()
+  reason, slowest, saved = "steps", 0.0, None
+  while hist["steps"] < args.steps:
+    elapsed = time.perf_counter() - t0
+    if args.minutes and time.perf_counter() - start + slowest > 60 * args.minutes:
       reason = "time limit"
       break
-  report = {"gpu": bench.device_name(), "scene": os.path.basename(args.scene), "nworld": args.nworld,
+    n = min(args.chunk, args.steps - hist["steps"])
+    run(n)
+    hist["steps"] += n
+    row, bad = check_chunk(d, collider, nworld, limit)
+    now = time.perf_counter() - t0
+    slowest = max(slowest, now - elapsed)
+    hist["seconds"] = seconds0 + now
+    row = {"step": hist["steps"], "segment": segment, "seconds": hist["seconds"], **row}
+    record(hist, row, bad)
+    print(f"step {row['step']:7d}  {row['seconds']:7.1f} s  energy max {row['energy_max']:.5g}"
+          f" mean {row['energy_mean']:.5g}  contacts/world {row['contacts_per_world']:.1f}  {'; '.join(bad) or 'ok'}",
+          flush=True)
+    if args.save and args.save_every and hist["chunks"] % args.save_every == 0:
+      saved = dict(save_checkpoint(args.save, d, checkpoint_meta(), args.save_max_mib), step=hist["steps"])
+  if args.save and (saved is None or saved["step"] != hist["steps"]):
+    saved = dict(save_checkpoint(args.save, d, checkpoint_meta(), args.save_max_mib), step=hist["steps"])
+  if saved:
+    print(f"saved {saved['path']} ({saved['mib']:.2f} MiB, warm start "
+          f"{'saved' if saved['warmstart_saved'] else 'left out'})")
+
+  steps, failures = hist["steps"], hist["failures"]
+  complete = steps >= args.steps
+  report = {"gpu": bench.device_name(), "scene": os.path.basename(scene), "nworld": nworld,
             "steps_run": steps, "steps_asked": args.steps, "stopped_by": reason, "chunk": args.chunk,
-            "energy_initial_max": float(e0.max()), "energy_bound": limit, "failures": failures, "passed": not failures,
-            "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__}, "trace": trace}
-  print(f"{steps} steps x {args.nworld} worlds: {'passed' if not failures else f'{len(failures)} failing chunks'}"
-        f" (stopped by {reason})")
+            "energy_initial_max": ref["energy_initial_max"], "energy_bound": limit, "failures": failures,
+            "passed": not failures, "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__},
+            "complete": complete, "segments": segment, "steps_this_segment": steps - steps0,
+            "seconds_this_segment": hist["seconds"] - seconds0, "seconds_total": hist["seconds"],
+            "nconmax": ref["nconmax"], "scene_sha256": sha, "potential_span": ref["potential_span"],
+            "resumed_from": args.resume, "saved_to": saved, "summary": summary(hist, ref), "trace": hist["trace"]}
+  print(f"{steps} of {args.steps} steps x {nworld} worlds over {segment} segment(s):"
+        f" {'passed' if not failures else f'{len(failures)} failing chunks'} (stopped by {reason};"
+        f" {'complete' if complete else 'not complete'})")
   if args.json:
     with open(args.json, "w") as f:
       json.dump(report, f, indent=1)

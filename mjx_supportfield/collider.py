@@ -112,6 +112,8 @@ class Collider:
           mpr_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = 1
           self.mpr_types.append((t1, t2))
       self.mpr_pair_type = wp.array(mpr_table, dtype=int)
+      core = (GeomType.SPHERE, GeomType.CAPSULE)
+      self.has_core_pairs = any(t1 in core or t2 in core for t1, t2 in self.mpr_types)
       self.has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       nmpr = int(mpr_table[t1 * narrowphase.NGEOMTYPE + t2].sum())
@@ -342,22 +344,27 @@ class Collider:
       st.patch_count.zero_()
       if self.options.warm_start:
         wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp, warm.misses])
-      wp.launch(
-        narrowphase.convex_kernel(self.options.narrowphase == "gjk"),
-        dim=nthread,
-        inputs=[
-          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-          m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
-          m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-          m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, self.mpr_pair_type,
-          SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
-          self.options.mpr_refine, self.options.max_contacts_per_pair if self.options.multi_contact else 1,
-          self.options.mc_perturbation, self.mesh_sdf,
-          self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start, warm.stamp, warm.slot_stamp,
-          warm.slot_key, warm.slot_value, warm.misses, self.geom_nonconvex,
-        ] + pair_inputs,
-        outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
-      )
+      gjk_all = self.options.narrowphase == "gjk"
+      # MPR's pairs, then GJK's (all with narrowphase="gjk", else those with a sphere or capsule)
+      for use_gjk in (False, True):
+        if (use_gjk and not (gjk_all or self.has_core_pairs)) or (not use_gjk and gjk_all):
+          continue
+        wp.launch(
+          narrowphase.convex_kernel(use_gjk),
+          dim=nthread,
+          inputs=[
+            m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
+            m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
+            m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+            m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
+            self.mpr_pair_type, SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance,
+            self.options.mpr_iterations, self.options.mpr_refine,
+            self.options.max_contacts_per_pair if self.options.multi_contact else 1, self.options.mc_perturbation,
+            self.mesh_sdf, self.options.mpr_to_sdf_overlap_ratio, int(gjk_all), self.options.warm_start,
+            warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses, self.geom_nonconvex,
+          ] + pair_inputs,
+          outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
+        )
       wp.launch(
         narrowphase.patch_kernel,
         dim=nthread,

@@ -283,10 +283,22 @@ def write_pair_contacts(
     )
 
 
+@wp.func
+def has_core(type1: int, type2: int) -> bool:
+  """Whether a pair has a sphere or capsule (a point or segment core grown by a radius)."""
+  return (type1 == GeomType.SPHERE or type1 == GeomType.CAPSULE or type2 == GeomType.SPHERE
+          or type2 == GeomType.CAPSULE)
+
+
 @functools.lru_cache(maxsize=None)
 def convex_kernel(use_gjk: bool):
   """The narrow-phase kernel of the convex pairs that are not analytic: penetration by MPR
-  (warm-started, refined) or, with ``use_gjk``, by GJK/EPA (gjk.py)."""
+  (warm-started, refined), or, with ``use_gjk``, by GJK/EPA (gjk.py).
+
+  Pairs with a sphere or capsule always go to the GJK variant (``gjk_all`` = 0: only those;
+  1: every pair). Two kernels, not one branch: EPA's polytope takes about 10 KB of stack a
+  thread, and inlined beside MPR it made every MPR pair slower on the GPU.
+  """
 
   @wp.kernel(module="unique", enable_backward=False)
   def convex_narrowphase(
@@ -327,6 +339,7 @@ def convex_kernel(use_gjk: bool):
     mc_perturbation: float,
     sdf: MeshSdf,
     sdf_ratio: float,
+    gjk_all: int,
     warm_start: int,
     ws_stamp: wp.array(dtype=int),
     ws_slot_stamp: wp.array2d(dtype=int),
@@ -376,6 +389,11 @@ def convex_kernel(use_gjk: bool):
         continue
       if geom_nonconvex[g1] or geom_nonconvex[g2]:
         continue  # nonconvex.py
+      # a sphere or capsule is a point or segment grown by a radius: GJK on those cores gives the
+      # exact nearest surface points, where MPR's normal drifts for a small sphere sunk deep
+      takes_gjk = gjk_all != 0 or has_core(geom_type[g1], geom_type[g2])
+      if takes_gjk != wp.static(use_gjk):
+        continue  # the other kernel's pair
       worldid = pair_worldid_in[cid]
       _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
         geom_condim,
@@ -410,12 +428,7 @@ def convex_kernel(use_gjk: bool):
       key = g1 * geom_type.shape[0] + g2
       res = MprResult()
       res.hit = 0
-      # a sphere or capsule is a point or segment grown by a radius: GJK on those cores gives the
-      # exact nearest surface points, where MPR's normal drifts for a small sphere sunk deep
-      core_pair = (geom_type[g1] == GeomType.SPHERE or geom_type[g1] == GeomType.CAPSULE
-                   or geom_type[g2] == GeomType.SPHERE or geom_type[g2] == GeomType.CAPSULE)
-      used_gjk = wp.static(use_gjk) or core_pair
-      if used_gjk:
+      if wp.static(use_gjk):
         res = gjk_epa(a, b, ms, support_mode, scale, tolerance, iterations)
       else:
         last = wp.vec4(0.0)
@@ -441,7 +454,7 @@ def convex_kernel(use_gjk: bool):
       # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding
       # diameter): MPR's portal face need not be the nearest; the SDFs know the nearest surface
       # (EPA's depth is exact: the fallback only serves MPR)
-      if not used_gjk and needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
+      if not wp.static(use_gjk) and needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
         bare = a  # the SDFs measure the true surfaces; A keeps its margin band for multi-contact
         bare.inflate = 0.0
         fallback = sdf_contact(bare, b, ms, sdf, support_mode, 1.0e-4 * scale)
@@ -450,7 +463,7 @@ def convex_kernel(use_gjk: bool):
           res.normal = fallback.normal
           res.pos = fallback.pos + 0.5 * band * fallback.normal
           extra.n = -1  # a fallback contact is not perturbed
-      if warm_start and not used_gjk:
+      if warm_start and not wp.static(use_gjk):
         value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
         warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
       one_point = (

@@ -79,18 +79,15 @@ def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3, with_extras: bool) -> t
 
   word = field_word(ms, mesh, i0, j0)
   proof = word & PROOF_MASK
-  if proof == CERTIFIED:
-    return word & INDEX_MASK, True
-  extras_at = int(0)
-  nextra = int(0)
+  extras_at = ms.extra_adr[mesh] + (word & INDEX_MASK)  # where a WITH_EXTRAS word points
   if proof == WITH_EXTRAS:
-    extras_at = ms.extra_adr[mesh] + (word & INDEX_MASK)
     word = int(ms.extra[extras_at])
-    if with_extras:
-      nextra = word >> EXTRA_COUNT_SHIFT
   best = word & INDEX_MASK
+  # candidates beside the cell's own vertex: none (certified), the 3 other corners, the extras
+  nextra = wp.where(with_extras and proof == WITH_EXTRAS, word >> EXTRA_COUNT_SHIFT, 0)
+  ncandidate = wp.where(proof == CERTIFIED, 0, 3 + nextra)
   best_dot = wp.dot(hull_point(ms, mesh, best), d)
-  for k in range(3 + nextra):
+  for k in range(ncandidate):
     c = int(0)
     if k < 3:
       c = field_cell(ms, mesh, wp.where(k == 1, i0, i1), wp.where(k == 0, j0, j1))
@@ -100,7 +97,7 @@ def field_lookup(ms: MeshSupport, mesh: int, d: wp.vec3, with_extras: bool) -> t
     if cd > best_dot:
       best = c
       best_dot = cd
-  return best, proof == CORNERS_EXACT or (proof == WITH_EXTRAS and with_extras)
+  return best, proof == CERTIFIED or proof == CORNERS_EXACT or (proof == WITH_EXTRAS and with_extras)
 
 
 @wp.func

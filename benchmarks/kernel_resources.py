@@ -1,0 +1,77 @@
+"""Registers and stack per thread of the narrow-phase kernels, without a GPU.
+
+  python benchmarks/kernel_resources.py [--arch 90] [--ptxas PATH] [--out FILE]
+
+Warp writes each kernel module's PTX for the given architecture (``wp.compile_aot_module``);
+``ptxas -v`` then reports what the GPU would run. A kernel at the 255-register cap spills to
+its stack: a large stack means slow local-memory traffic for every thread, whatever branch it
+takes (MPR and GJK in one kernel cost MPR 10 KB a thread). Warp 1.19 emits PTX 9.4, which
+needs ptxas from CUDA 13.4 or later, e.g. the ``nvidia-cuda-nvcc`` wheel
+(``nvidia/cu13/bin/ptxas`` inside it).
+"""
+
+import argparse
+import os
+import re
+import subprocess
+import tempfile
+
+import warp as wp
+
+from mjx_supportfield import narrowphase
+
+ENTRY = re.compile(r"Compiling entry function '([^']+)'")
+USAGE = re.compile(r"Used (\d+) registers.*?(\d+) bytes cumulative stack size")
+
+
+def kernels() -> dict:
+  """The kernels to report: name -> Warp kernel."""
+  return {
+    "convex (MPR)": narrowphase.convex_kernel(False),
+    "convex (GJK/EPA)": narrowphase.convex_kernel(True),
+    "patch (multi-contact)": narrowphase.patch_kernel,
+  }
+
+
+def resources(kernel, arch: int, ptxas: str, workdir: str) -> tuple[int, int]:
+  """(registers, stack bytes) of one kernel's forward entry, from ptxas."""
+  paths = wp.compile_aot_module(kernel.module, arch=arch, use_ptx=True, module_dir=workdir)
+  name = kernel.get_mangled_name()  # known once the module is built
+  for path in paths:
+    ptx = os.path.join(workdir, "kernel.ptx")
+    with open(path, "rb") as src, open(ptx, "wb") as dst:
+      dst.write(src.read().replace(b"\0", b""))  # the PTX file ends with a NUL ptxas refuses
+    out = subprocess.run([ptxas, "-v", f"-arch=sm_{arch}", ptx, "-o", os.devnull], capture_output=True, text=True)
+    if out.returncode != 0:
+      raise RuntimeError(f"ptxas failed on {path}: {out.stderr.strip()[-500:]}")
+    entry = None
+    for line in (out.stdout + out.stderr).splitlines():
+      if m := ENTRY.search(line):
+        entry = m.group(1)
+      elif (m := USAGE.search(line)) and entry and entry.startswith(name) and entry.endswith("forward"):
+        return int(m.group(1)), int(m.group(2))
+  raise RuntimeError(f"ptxas reported nothing for {name}")
+
+
+def main():
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("--arch", type=int, default=90, help="SM architecture (90: H100 / H200)")
+  p.add_argument("--ptxas", default="ptxas", help="ptxas of CUDA 13.4 or later")
+  p.add_argument("--out", help="also write the table to this file")
+  args = p.parse_args()
+  wp.config.log_level = wp.LOG_WARNING
+  wp.init()
+  lines = [f"sm_{args.arch}, warp {wp.__version__}", f"{'kernel':24s} {'registers':>9s} {'stack B':>8s}"]
+  with tempfile.TemporaryDirectory() as workdir:
+    for label, kernel in kernels().items():
+      regs, stack = resources(kernel, args.arch, args.ptxas, workdir)
+      lines.append(f"{label:24s} {regs:9d} {stack:8d}")
+  text = "\n".join(lines)
+  print(text)
+  if args.out:
+    with open(args.out, "w") as f:
+      f.write(text + "\n")
+
+
+if __name__ == "__main__":
+  main()

@@ -87,6 +87,21 @@ def broadphase_ms(path: str, nworld: int, launches: int) -> dict:
   return {"ngeom": mjm.ngeom, "nworld": nworld, "ms": ms, "pairs_per_world": int(st.npair.numpy()[0]) / nworld}
 
 
+def broadphase_scaling(nworld: int, launches: int, out: str, suffix: str) -> None:
+  """The broad phase alone on the 32-, 256- and 1024-mesh piles: <out>/<date>-<device>-broadphase<suffix>.json."""
+  scaling = []
+  for name in BROADPHASE_SCENES:
+    scaling.append(broadphase_ms(SCENES[name][0], nworld, launches))
+    print(json.dumps(scaling[-1]), flush=True)
+  device = bench.device_name()
+  tag = device.split()[-1].lower() if wp.get_device().is_cuda else "cpu"
+  path = os.path.join(out, f"{datetime.date.today()}-{tag}-broadphase{suffix}.json")
+  with open(path, "w") as f:
+    json.dump({"device": device, "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__},
+               "launches": launches, "broadphase_scaling": scaling}, f, indent=1)
+  print("wrote", path)
+
+
 def compile_all(names: list[str], jobs: int) -> dict:
   """Runs each scene once (both implementations, 64 worlds) in ``jobs`` parallel processes, so
   every kernel is in Warp's cache before timing. Returns each scene's exit status."""
@@ -112,6 +127,8 @@ def main(argv=None):
   p.add_argument("--options", default="{}", help="plugin Options as JSON, e.g. '{\"warm_start\": false}'")
   p.add_argument("--compile-jobs", type=int, default=0, help="compile the scenes in N parallel processes first")
   p.add_argument("--compile-only", action="store_true", help="run each scene once at 64 worlds, time nothing")
+  p.add_argument("--broadphase-only", type=int, metavar="NWORLD",
+                 help="time only the broad phase of the piles at NWORLD worlds, on the current device (CPU works)")
   args = p.parse_args(argv)
   wp.config.log_level = wp.LOG_WARNING
   names = args.only or list(SCENES)
@@ -120,6 +137,9 @@ def main(argv=None):
   if args.compile_only:
     for name in names:
       bench.bench_scene(SCENES[name][0], [64], 1, 200, None, Options())
+    return
+  if args.broadphase_only:
+    broadphase_scaling(args.broadphase_only, args.launches, args.out, args.suffix)
     return
   if args.compile_jobs:
     compile_all(names, args.compile_jobs)

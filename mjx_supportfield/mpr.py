@@ -236,23 +236,47 @@ def mpr_refined_from(
   penetration along that ray, not the smallest one. Restarting from a point just behind the
   origin (-depth/2 along the normal) sends the ray along the normal; on curved surfaces this
   walks to the point whose surface normal is the ray, the minimum.
+
+  It stays on the face it found, though: an answer deeper than ``DEEP_RATIO`` x ``scale`` is
+  also checked along both shapes' local axes and rerun along any shallower one (two 1 mm plates
+  crossing at a small angle, offset sideways, came out 0.7 m deep along their length instead of
+  MuJoCo C's 2.5 mm across their thickness).
   """
   best = mpr(a, b, ms, mode, p0, scale, tol, iterations)
   if best.hit == 0:
     return best
-  if wp.dot(best.normal, wp.normalize(-p0.v)) > 1.0 - 1.0e-6:
-    return best  # the ray already runs along the normal: MPR's fixed point
-  for _ in range(refine):
-    if best.depth <= 1.0e-6 * scale:
-      break
-    r = mpr(a, b, ms, mode, behind_origin(best.normal, best.depth, scale), scale, tol, iterations)
-    if r.hit == 0 or r.depth >= best.depth - tol * scale:
-      break
-    # the same normal again (a flat face of a polytope, or converged): nothing left to gain
-    done = wp.dot(r.normal, best.normal) > 1.0 - 1.0e-6
-    best = r
-    if done:
-      break
+  # the ray already running along the normal is MPR's fixed point: nothing to refine
+  refining = bool(wp.dot(best.normal, wp.normalize(-p0.v)) <= 1.0 - 1.0e-6)
+  deep = best.depth > DEEP_RATIO * scale
+  k = int(0)  # next local axis to check
+  # one MPR call site for the reruns and the axis checks keeps the kernels' stack small
+  for _ in range(refine + 12):
+    u = wp.vec3(best.normal)
+    start = float(best.depth)
+    if refining and best.depth <= 1.0e-6 * scale:
+      refining = False
+    if not refining:
+      if not deep:
+        break
+      found = bool(False)
+      while k < 12 and not found:
+        u = _axis(a, b, k)
+        k += 1
+        start = wp.dot(_support(a, b, ms, u, mode).v, u)
+        found = start > 0.0 and start < best.depth - tol * scale
+      if not found:
+        break
+    r = mpr(a, b, ms, mode, behind_origin(u, start, scale), scale, tol, iterations)
+    if refining:
+      if r.hit == 0 or r.depth >= best.depth - tol * scale:
+        refining = False
+        continue
+      # the same normal again (a flat face of a polytope, or converged): nothing left to gain
+      if wp.dot(r.normal, best.normal) > 1.0 - 1.0e-6:
+        refining = False
+      best = r
+    elif r.hit != 0 and r.depth < best.depth - tol * scale:
+      best = r
   return best
 
 
@@ -264,6 +288,9 @@ def behind_origin(normal: wp.vec3, depth: float, scale: float) -> Vertex:
   return q0
 
 
+DEEP_RATIO = 0.1  # MPR depths beyond this x the pair's scale are checked along the shapes' axes
+
+
 @wp.func
 def _axis(a: Shape, b: Shape, k: int) -> wp.vec3:
   """The k-th of the 12 signed local axes of A (k < 6) and B."""
@@ -273,28 +300,6 @@ def _axis(a: Shape, b: Shape, k: int) -> wp.vec3:
   col = k % 3
   sign = wp.where((k // 3) % 2 == 0, 1.0, -1.0)
   return sign * wp.vec3(rot[0, col], rot[1, col], rot[2, col])
-
-
-@wp.func
-def shallower_along_axes(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, best: MprResult, scale: float, tol: float, iterations: int
-) -> MprResult:
-  """A deep MPR answer checked against the shapes' local axes: where the overlap along an axis
-  (two support queries) is smaller than MPR's depth, MPR runs again along that axis and the
-  shallower answer wins.
-
-  MPR's refinement walks from its first normal and stays on the face it found: two thin plates
-  crossing at a small angle, offset sideways, came out 0.7 m deep along their length instead of
-  2.5 mm across their thickness (MuJoCo C).
-  """
-  for k in range(12):
-    u = _axis(a, b, k)
-    depth_u = wp.dot(_support(a, b, ms, u, mode).v, u)
-    if depth_u > 0.0 and depth_u < best.depth - tol * scale:
-      r = mpr(a, b, ms, mode, behind_origin(u, depth_u, scale), scale, tol, iterations)
-      if r.hit != 0 and r.depth < best.depth - tol * scale:
-        best = r
-  return best
 
 
 @wp.func

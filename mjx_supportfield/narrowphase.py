@@ -21,7 +21,6 @@ from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
-from mjx_supportfield.mpr import shallower_along_axes
 from mjx_supportfield.multicontact import TILT_GROWTH
 from mjx_supportfield.multicontact import Patch
 from mjx_supportfield.multicontact import keep_first
@@ -37,7 +36,6 @@ from mjx_supportfield.types import Shape
 ANALYTIC_PAIRS = tuple(_PRIMITIVE_COLLISIONS.keys())
 
 NGEOMTYPE = len(GeomType)
-DEEP_RATIO = 0.1  # MPR depths beyond this x the smaller geom's bounding diameter are checked along the axes
 WARM_BEHIND = 0.02  # least distance of a warm start point behind the origin, x the pair's scale
 
 
@@ -451,8 +449,6 @@ def convex_kernel(use_gjk: bool):
           res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
       if res.hit == 0:
         continue
-      if not wp.static(use_gjk) and res.depth - band > DEEP_RATIO * 2.0 * wp.min(geom_rbound[rb, g1], geom_rbound[rb, g2]):
-        res = shallower_along_axes(a, b, ms, support_mode, res, scale, tolerance, iterations)
       extra = Patch()
       extra.n = 0
       # one shape largely inside the other (deeper than sdf_ratio x the smaller one's bounding

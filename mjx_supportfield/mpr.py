@@ -249,11 +249,12 @@ def mpr_refined_from(
   refining = bool(wp.dot(best.normal, wp.normalize(-p0.v)) <= 1.0 - 1.0e-6)
   deep = best.depth > DEEP_RATIO * scale
   k = int(0)  # next local axis to check
+  nrerun = int(0)  # reruns along the normal so far
   # one MPR call site for the reruns and the axis checks keeps the kernels' stack small
   for _ in range(refine + 12):
     u = wp.vec3(best.normal)
     start = float(best.depth)
-    if refining and best.depth <= 1.0e-6 * scale:
+    if refining and (nrerun >= refine or best.depth <= 1.0e-6 * scale):
       refining = False
     if not refining:
       if not deep:
@@ -268,6 +269,7 @@ def mpr_refined_from(
         break
     r = mpr(a, b, ms, mode, behind_origin(u, start, scale), scale, tol, iterations)
     if refining:
+      nrerun += 1
       if r.hit == 0 or r.depth >= best.depth - tol * scale:
         refining = False
         continue

@@ -689,6 +689,62 @@ def _flat_normal(a: Shape, b: Shape) -> wp.vec3:
 
 
 @wp.func
+def _point_in_hull(hull: Shape, ms: MeshSupport, p: wp.vec3) -> wp.vec4:
+  """The hull face plane of a mesh shape that world point p lies farthest in front of: its
+  outward unit normal (world) and p's signed distance to it (<= 0: p is inside the hull, at
+  that distance from its surface; > 0: p is at least that far outside)."""
+  local = wp.transpose(hull.rot) @ (p - hull.pos)
+  adr = ms.plane_adr[hull.mesh]
+  best = float(-FAR)
+  normal = wp.vec3(0.0)
+  for f in range(ms.plane_num[hull.mesh]):
+    plane = ms.plane[adr + f]
+    n = wp.vec3(plane[0], plane[1], plane[2])
+    dist = wp.dot(n, local) - plane[3]
+    if dist > best:
+      best = dist
+      normal = n
+  n = hull.rot @ normal
+  return wp.vec4(n[0], n[1], n[2], best)
+
+
+@wp.func
+def _sunk_sphere(a: Shape, b: Shape, ms: MeshSupport, reach: float) -> MprResult:
+  """gjk_epa's answer for a sphere whose centre lies inside a mesh's hull (the other shape),
+  miss() for one farther than ``reach`` from it, and hit = -1 when GJK has to decide (the
+  centre lies outside but within reach, a pair of other types, a mesh without planes)."""
+  r = MprResult()
+  r.hit = -1
+  sphere_a = a.gtype == GeomType.SPHERE and b.gtype == GeomType.MESH
+  sphere_b = b.gtype == GeomType.SPHERE and a.gtype == GeomType.MESH
+  if not (sphere_a or sphere_b):
+    return r
+  hull = a  # the mesh, and the sphere's centre
+  p = b.pos
+  if sphere_a:
+    hull = b
+    p = a.pos
+  if ms.plane_num[hull.mesh] == 0:
+    return r
+  q = _point_in_hull(hull, ms, p)
+  if q[3] > reach:
+    return miss()
+  if q[3] > 0.0:
+    return r
+  face = wp.vec3(q[0], q[1], q[2])
+  foot = p - q[3] * face  # on the face plane
+  # from A to B: out of the mesh's face when B is the sphere, into it when A is
+  n = wp.where(sphere_b, face, -face)
+  pa = wp.where(sphere_b, foot, p)
+  pb = wp.where(sphere_b, p, foot)
+  r.hit = 1
+  r.depth = _rim(a) + _rim(b) - q[3]
+  r.normal = n
+  r.pos = 0.5 * (pa + _rim(a) * n + pb - _rim(b) * n)
+  return r
+
+
+@wp.func
 def gjk_epa(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int) -> MprResult:
   """Penetration of A (grown by a.inflate) and B by GJK, and EPA where their cores overlap.
 
@@ -700,9 +756,14 @@ def gjk_epa(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: f
   ra = _rim(a)
   rb = _rim(b)
   rims = ra + rb
+  touch = EPS * scale  # closer than this is touching
+  # a sphere against a mesh: from the hull's face planes when its centre is sunk in the hull
+  # (EPA would build a polytope for what one pass over the planes answers exactly)
+  sunk = _sunk_sphere(a, b, ms, rims + touch + tol * scale)
+  if sunk.hit >= 0:
+    return sunk
   ca = _core(a)
   cb = _core(b)
-  touch = EPS * scale  # closer than this is touching
   g = _gjk(ca, cb, ms, mode, scale, tol, iterations, rims + touch + tol * scale)
   depth = float(0.0)
   n = wp.vec3(0.0)

@@ -57,6 +57,10 @@ class HullData:
   nbr_adr: np.ndarray
   nbr_num: np.ndarray
   nbr: np.ndarray
+  # hull face planes (outward unit normal, offset; mesh frame), per mesh; none: EPA serves instead
+  plane_adr: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int32))
+  plane_num: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int32))
+  plane: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 4), np.float32))
 
 
 def mesh_hull(mjm: mujoco.MjModel, meshid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -83,9 +87,38 @@ def mesh_hull(mjm: mujoco.MjModel, meshid: int) -> tuple[np.ndarray, np.ndarray,
   return globalid, (ends - edgeadr).astype(np.int32), lists[lists >= 0].astype(np.int32)
 
 
+def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
+  """(nface, 4) supporting planes along the face normals of MuJoCo's convex hull of a mesh:
+  outward unit normal n and offset max(n . v) over the hull vertices (n . x <= offset inside),
+  mesh frame; none for a mesh without a hull graph.
+
+  The offset is the hull's support along n rather than the face's own offset, so a sliver face
+  with a poor float32 normal still gives a plane the whole hull lies behind (it can only make a
+  point's depth, the smallest distance to the planes, too large, never too small).
+  """
+  adr = mjm.mesh_graphadr[meshid]
+  if adr < 0:
+    return np.zeros((0, 4), np.float32)
+  g = mjm.mesh_graph
+  nv, nf = int(g[adr]), int(g[adr + 1])
+  start = adr + 2 + 2 * nv + nv + 3 * nf  # after the header, edge addresses, global ids and edge lists
+  faces = np.asarray(g[start : start + 3 * nf], dtype=np.int64).reshape(nf, 3)
+  vert = np.asarray(mjm.mesh_vert[mjm.mesh_vertadr[meshid] : mjm.mesh_vertadr[meshid] + mjm.mesh_vertnum[meshid]],
+                    dtype=np.float64)
+  hull = vert[np.unique(faces)]
+  p0, p1, p2 = vert[faces[:, 0]], vert[faces[:, 1]], vert[faces[:, 2]]
+  n = np.cross(p1 - p0, p2 - p0)
+  length = np.linalg.norm(n, axis=1)
+  n = n[length > 0] / length[length > 0, None]
+  n[n @ hull.mean(axis=0) > np.einsum("ij,ij->i", n, p0[length > 0])] *= -1  # outward whatever the winding
+  return np.concatenate([n, (hull @ n.T).max(axis=0)[:, None]], axis=1).astype(np.float32)
+
+
 def hull_data(mjm: mujoco.MjModel) -> HullData:
   """Flattens the hulls of all meshes of a model."""
   parts = [mesh_hull(mjm, i) for i in range(mjm.nmesh)]
+  planes = [mesh_hull_planes(mjm, i) for i in range(mjm.nmesh)]
+  plane_num = np.array([len(p) for p in planes], dtype=np.int32)
   hull_num = np.array([len(p[0]) for p in parts], dtype=np.int32)
   nbr_num = np.concatenate([p[1] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32)
   centers = [
@@ -99,6 +132,9 @@ def hull_data(mjm: mujoco.MjModel) -> HullData:
     nbr_adr=np.concatenate([[0], np.cumsum(nbr_num)[:-1]]).astype(np.int32) if len(nbr_num) else np.zeros(0, np.int32),
     nbr_num=nbr_num,
     nbr=np.concatenate([p[2] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32),
+    plane_adr=np.concatenate([[0], np.cumsum(plane_num)[:-1]]).astype(np.int32) if parts else np.zeros(0, np.int32),
+    plane_num=plane_num,
+    plane=np.concatenate(planes).astype(np.float32) if parts else np.zeros((0, 4), np.float32),
   )
 
 
@@ -498,6 +534,11 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.nbr_adr = arr(hd.nbr_adr)
   ms.nbr_num = arr(hd.nbr_num)
   ms.nbr = arr(hd.nbr)
+  nmesh = len(hd.hull_num)
+  has_planes = len(hd.plane_num) == nmesh and len(hd.plane) > 0
+  ms.plane_adr = arr(hd.plane_adr if has_planes else np.zeros(nmesh, np.int32))
+  ms.plane_num = arr(hd.plane_num if has_planes else np.zeros(nmesh, np.int32))
+  ms.plane = arr(hd.plane if has_planes else np.zeros((1, 4), np.float32), wp.vec4)
   extremes = wp.array(extreme_vertices(hd, host_vert, vertadr), dtype=int, device=device)
   if adaptive:
     field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)

@@ -39,6 +39,9 @@ class MeshSupport:
   field: wp.array(dtype=wp.uint16)  # per cell: local hull index of the support vertex, proof code
   extra_adr: wp.array(dtype=int)  # per mesh: first entry of its extras lists in extra
   extra: wp.array(dtype=wp.uint16)  # extras lists of WITH_EXTRAS quads (see support.py)
+  plane_adr: wp.array(dtype=int)  # per mesh: first hull face plane
+  plane_num: wp.array(dtype=int)  # per mesh: hull face planes (0: none known)
+  plane: wp.array(dtype=wp.vec4)  # hull face planes: outward unit normal, offset (mesh frame)
 
 
 @wp.struct

@@ -141,6 +141,11 @@ PENETRATING = {
                                dict(depth=0.25, normal=None, axis=[0, 0, 1])),
   "sphere-in-cylinder": (geom(CYLINDER, [0.3, 0.4]), geom(SPHERE, [0.05], [0.22, 0, 0.1]),
                          dict(depth=0.13, normal=[1, 0, 0], pos=[0.235, 0, 0.1])),
+  # a sphere's centre sunk in a mesh: answered from the hull's face planes, in either order
+  "sphere-in-cube": (cube(), geom(SPHERE, [0.05], [0.05, 0.025, 0.2]),
+                     dict(depth=0.1, normal=[0, 0, 1], pos=[0.05, 0.025, 0.2])),
+  "cube-around-sphere": (geom(SPHERE, [0.05], [0.05, -0.22, 0.025]), cube(),
+                         dict(depth=0.08, normal=[0, 1, 0], pos=[0.05, -0.21, 0.025])),
 }
 
 CURVED = ("sphere-in-cylinder",)  # EPA on a curved surface

@@ -1,5 +1,6 @@
 """Support functions: closed forms of the primitives, the support field of convex meshes."""
 
+import mujoco
 import mujoco_warp as mjw
 import numpy as np
 import pytest
@@ -342,3 +343,36 @@ def test_field_cells_hold_cell_support(pile, mesh_supports):
       got = np.sum(verts[local] * cell_dir, axis=1)
       true = np.max(cell_dir @ verts.T, axis=1)
       np.testing.assert_allclose(got, true, atol=1e-7, err_msg=f"mesh {meshid}, res {r}")
+
+
+def test_hull_planes_support_the_hull(pile):
+  """The hull face planes (for spheres sunk in meshes): unit outward normals, every vertex
+  behind every plane, each plane touching the hull, points inside the hull behind all of them."""
+  mjm, _ = pile
+  hd = support_field.hull_data(mjm)
+  rng = np.random.default_rng(0)
+  for meshid in range(mjm.nmesh):
+    planes = hd.plane[hd.plane_adr[meshid] : hd.plane_adr[meshid] + hd.plane_num[meshid]].astype(np.float64)
+    assert len(planes) >= 4
+    n, offset = planes[:, :3], planes[:, 3]
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+    v = mesh_vertices(mjm, meshid)
+    size = np.ptp(v, axis=0).max()
+    heights = v @ n.T - offset  # <= 0: behind
+    assert heights.max() <= 1e-6 * size
+    assert np.all(heights.max(axis=0) >= -1e-6 * size)
+    center = v.mean(axis=0)
+    inside = center + 0.5 * (v[rng.integers(len(v), size=50)] - center)
+    assert np.all((inside @ n.T - offset).max(axis=1) < 0)
+
+
+def test_hull_planes_of_a_cube():
+  """A cube mesh: its 12 hull triangles give the 6 face planes, each twice."""
+  xml = """<mujoco><asset><mesh name="c" vertex="-1 -1 -1  1 -1 -1  -1 1 -1  1 1 -1  -1 -1 1  1 -1 1  -1 1 1  1 1 1"/>
+    </asset><worldbody><geom type="mesh" mesh="c"/></worldbody></mujoco>"""
+  mjm = mujoco.MjModel.from_xml_string(xml)
+  planes = support_field.mesh_hull_planes(mjm, 0)
+  assert len(planes) == 12
+  faces = {tuple(np.round(p, 5)) for p in planes}
+  expected = {tuple(float(x) for x in np.round(np.r_[s * np.eye(3)[k], 1.0], 5)) for k in range(3) for s in (-1, 1)}
+  assert faces == expected

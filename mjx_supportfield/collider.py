@@ -57,6 +57,8 @@ class DataState:
   stock_ctx: CollisionContext
   capacity: int
   warm: warmstart.WarmCache
+  queue_count: wp.array  # pairs in each narrow-phase kernel's queue (narrowphase.queue_pairs)
+  queue_pair: wp.array  # (NQUEUE, capacity) the queues: indices into pair
   patch_count: wp.array  # pairs queued for multi-contact (narrowphase.patch_kernel)
   patch_pair: wp.array
   patch_result: wp.array
@@ -105,18 +107,20 @@ class Collider:
 
       present = self._pair_types_present(mjm, pairs)
       self.analytic_types = tuple(t for t in narrowphase.ANALYTIC_PAIRS if t in present)
-      mpr_table = np.zeros(narrowphase.NGEOMTYPE**2, dtype=np.int32)
+      queue_table = np.full(narrowphase.NGEOMTYPE**2, -1, dtype=np.int32)  # see narrowphase.queue_pairs
+      for t1, t2 in self.analytic_types:
+        queue_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = narrowphase.QUEUE_ANALYTIC
       self.mpr_types = []
       for t1, t2 in present:
         if (t1, t2) not in narrowphase.ANALYTIC_PAIRS and t1 in CONVEX_TYPES and t2 in CONVEX_TYPES:
-          mpr_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = 1
+          queue_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = narrowphase.QUEUE_MPR
           self.mpr_types.append((t1, t2))
-      self.mpr_pair_type = wp.array(mpr_table, dtype=int)
+      self.pair_queue_type = wp.array(queue_table, dtype=int)
       core = (GeomType.SPHERE, GeomType.CAPSULE)
       self.has_core_pairs = any(t1 in core or t2 in core for t1, t2 in self.mpr_types)
       self.has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
-      nmpr = int(mpr_table[t1 * narrowphase.NGEOMTYPE + t2].sum())
+      nmpr = int((queue_table[t1 * narrowphase.NGEOMTYPE + t2] == narrowphase.QUEUE_MPR).sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
       # non-convex meshes: their own triangles' SDFs
       ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
@@ -206,6 +210,8 @@ class Collider:
         ),
         capacity=capacity,
         warm=warmstart.make_cache(nworld, self.warm_slots if self.options.warm_start else 1),
+        queue_count=wp.zeros(narrowphase.NQUEUE, dtype=int),
+        queue_pair=wp.zeros((narrowphase.NQUEUE, capacity), dtype=int),
         patch_count=wp.zeros(1, dtype=int),
         patch_pair=wp.zeros(capacity, dtype=int),
         patch_result=wp.zeros(capacity, dtype=wp.vec4),
@@ -325,6 +331,16 @@ class Collider:
   def _narrowphase(self, m, d, st: DataState):
     nthread = max(1, min(st.capacity, _GRID_THREADS))
     pair_inputs = [st.npair, st.pair, st.pairid, st.pair_worldid, nthread]
+    queue_inputs = [st.queue_count, st.queue_pair, st.pair, st.pairid, st.pair_worldid, nthread]
+    gjk_all = self.options.narrowphase == "gjk"
+    if self.analytic_types or self.mpr_types:
+      st.queue_count.zero_()
+      wp.launch(
+        narrowphase.queue_pairs,
+        dim=nthread,
+        inputs=[m.geom_type, self.pair_queue_type, self.geom_nonconvex, int(gjk_all), st.npair, st.pair, nthread],
+        outputs=[st.queue_count, st.queue_pair],
+      )
     if self.analytic_types:
       wp.launch(
         narrowphase.analytic_kernel(self.analytic_types),
@@ -336,7 +352,7 @@ class Collider:
           m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
           m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
           m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
-        ] + pair_inputs,
+        ] + queue_inputs,
         outputs=self._contact_outputs(d),
       )
     if self.mpr_types:
@@ -344,7 +360,6 @@ class Collider:
       st.patch_count.zero_()
       if self.options.warm_start:
         wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp, warm.misses])
-      gjk_all = self.options.narrowphase == "gjk"
       # MPR's pairs, then GJK's (all with narrowphase="gjk", else those with a sphere or capsule)
       for use_gjk in (False, True):
         if (use_gjk and not (gjk_all or self.has_core_pairs)) or (not use_gjk and gjk_all):
@@ -357,12 +372,12 @@ class Collider:
             m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
             m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
             m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
-            self.mpr_pair_type, SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance,
+            SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance,
             self.options.mpr_iterations, self.options.mpr_refine,
             self.options.max_contacts_per_pair if self.options.multi_contact else 1, self.options.mc_perturbation,
-            self.mesh_sdf, self.options.mpr_to_sdf_overlap_ratio, int(gjk_all), self.options.warm_start,
-            warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses, self.geom_nonconvex,
-          ] + pair_inputs,
+            self.mesh_sdf, self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start,
+            warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses,
+          ] + queue_inputs,
           outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
         )
       wp.launch(

@@ -36,6 +36,11 @@ from mjx_supportfield.types import Shape
 ANALYTIC_PAIRS = tuple(_PRIMITIVE_COLLISIONS.keys())
 
 NGEOMTYPE = len(GeomType)
+# the narrow-phase kernels' pair queues (queue_pairs)
+QUEUE_ANALYTIC = wp.constant(0)
+QUEUE_MPR = wp.constant(1)
+QUEUE_GJK = wp.constant(2)
+NQUEUE = 3
 WARM_BEHIND = 0.02  # least distance of a warm start point behind the origin, x the pair's scale
 
 
@@ -86,7 +91,8 @@ def analytic_kernel(pair_types: tuple):
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
     naconmax_in: int,
     # In:
-    npair_in: wp.array(dtype=int),
+    queue_count: wp.array(dtype=int),
+    queue_pair: wp.array2d(dtype=int),
     pair_in: wp.array(dtype=wp.vec2i),
     pairid_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
@@ -110,7 +116,8 @@ def analytic_kernel(pair_types: tuple):
     nacon_out: wp.array(dtype=int),
   ):
     tid = wp.tid()
-    for cid in range(tid, npair_in[0], nthread):
+    for i in range(tid, queue_count[QUEUE_ANALYTIC], nthread):
+      cid = queue_pair[QUEUE_ANALYTIC, i]
       geoms = pair_in[cid]
       type1 = geom_type[geoms[0]]
       type2 = geom_type[geoms[1]]
@@ -290,14 +297,55 @@ def has_core(type1: int, type2: int) -> bool:
           or type2 == GeomType.CAPSULE)
 
 
+@wp.kernel(enable_backward=False)
+def queue_pairs(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  # In:
+  pair_queue_type: wp.array(dtype=int),
+  geom_nonconvex: wp.array(dtype=int),
+  gjk_all: int,
+  npair_in: wp.array(dtype=int),
+  pair_in: wp.array(dtype=wp.vec2i),
+  nthread: int,
+  # Out:
+  queue_count: wp.array(dtype=int),
+  queue_pair: wp.array2d(dtype=int),
+):
+  """Deals the broad phase's pairs out to the analytic, MPR and GJK/EPA kernels' queues, so
+  the warps of each kernel run only pairs of their own kind (in the pair list, a pile's
+  mesh-plane pairs sat idle in the MPR kernel's warps, between the mesh-mesh pairs).
+
+  ``pair_queue_type`` maps a pair's geom types to QUEUE_ANALYTIC or QUEUE_MPR (else -1: the
+  heightfield and non-convex kernels, and stock MuJoCo Warp, walk the whole list). A convex
+  pair with a sphere or capsule goes to GJK (a point or segment core grown by a radius: GJK
+  gives the exact nearest points, where MPR's normal drifts for a small sphere sunk deep), as
+  do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py.
+  """
+  tid = wp.tid()
+  for cid in range(tid, npair_in[0], nthread):
+    geoms = pair_in[cid]
+    type1 = geom_type[geoms[0]]
+    type2 = geom_type[geoms[1]]
+    queue = pair_queue_type[type1 * wp.static(NGEOMTYPE) + type2]
+    if queue == QUEUE_MPR:
+      if geom_nonconvex[geoms[0]] or geom_nonconvex[geoms[1]]:
+        continue
+      if gjk_all != 0 or has_core(type1, type2):
+        queue = QUEUE_GJK
+    if queue >= 0:
+      slot = wp.atomic_add(queue_count, queue, 1)
+      queue_pair[queue, slot] = cid
+
+
 @functools.lru_cache(maxsize=None)
 def convex_kernel(use_gjk: bool):
   """The narrow-phase kernel of the convex pairs that are not analytic: penetration by MPR
   (warm-started, refined), or, with ``use_gjk``, by GJK/EPA (gjk.py).
 
-  Pairs with a sphere or capsule always go to the GJK variant (``gjk_all`` = 0: only those;
-  1: every pair). Two kernels, not one branch: EPA's polytope takes about 10 KB of stack a
-  thread, and inlined beside MPR it made every MPR pair slower on the GPU.
+  Each variant walks its own queue (queue_pairs). Two kernels, not one branch: EPA's polytope
+  takes about 10 KB of stack a thread, and inlined beside MPR it made every MPR pair slower on
+  the GPU.
   """
 
   @wp.kernel(module="unique", enable_backward=False)
@@ -330,7 +378,6 @@ def convex_kernel(use_gjk: bool):
     naconmax_in: int,
     # In:
     ms: MeshSupport,
-    mpr_pair_type: wp.array(dtype=int),
     support_mode: int,
     tolerance: float,
     iterations: int,
@@ -339,15 +386,14 @@ def convex_kernel(use_gjk: bool):
     mc_perturbation: float,
     sdf: MeshSdf,
     sdf_ratio: float,
-    gjk_all: int,
     warm_start: int,
     ws_stamp: wp.array(dtype=int),
     ws_slot_stamp: wp.array2d(dtype=int),
     ws_slot_key: wp.array2d(dtype=int),
     ws_slot_value: wp.array2d(dtype=wp.vec4),
     ws_misses: wp.array(dtype=int),
-    geom_nonconvex: wp.array(dtype=int),
-    npair_in: wp.array(dtype=int),
+    queue_count: wp.array(dtype=int),
+    queue_pair: wp.array2d(dtype=int),
     pair_in: wp.array(dtype=wp.vec2i),
     pairid_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
@@ -381,19 +427,12 @@ def convex_kernel(use_gjk: bool):
     pair's normal of the previous call and falls back to a cold start when that misses."""
     tid = wp.tid()
     now = ws_stamp[0]
-    for cid in range(tid, npair_in[0], nthread):
+    queue = wp.static(QUEUE_GJK if use_gjk else QUEUE_MPR)
+    for i in range(tid, queue_count[queue], nthread):
+      cid = queue_pair[queue, i]
       geoms = pair_in[cid]
       g1 = geoms[0]
       g2 = geoms[1]
-      if mpr_pair_type[geom_type[g1] * wp.static(NGEOMTYPE) + geom_type[g2]] == 0:
-        continue
-      if geom_nonconvex[g1] or geom_nonconvex[g2]:
-        continue  # nonconvex.py
-      # a sphere or capsule is a point or segment grown by a radius: GJK on those cores gives the
-      # exact nearest surface points, where MPR's normal drifts for a small sphere sunk deep
-      takes_gjk = gjk_all != 0 or has_core(geom_type[g1], geom_type[g2])
-      if takes_gjk != wp.static(use_gjk):
-        continue  # the other kernel's pair
       worldid = pair_worldid_in[cid]
       _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
         geom_condim,

@@ -1,6 +1,13 @@
-"""Per-kernel GPU time of one collision call, plugin and stock (Warp's CUDA activity timing).
+"""Per-kernel GPU time of the collision stage, plugin and stock (Warp's CUDA activity timing).
 
   python benchmarks/profile_collision.py SCENE.xml [--nworld 8192] [--settle 200] [--variants V,V,...]
+                                        [--steps N]
+
+Without ``--steps``: collision called ``--repeats`` times on one frozen state. That flatters the
+plugin's warm start (from the second call on it holds the answer), so with ``--steps N`` the
+profile covers N whole ``mjw.step`` calls instead, as ``bench`` times them: each kernel is
+counted as collision when a collision call launches it, and the step's other kernels are
+reported as the rest (solver, kinematics, ...), with the mean solver iterations.
 
 A variant is ``default`` or Options fields as ``key=value;key=value`` (Python literals), e.g.
 ``multi_contact=False;mpr_refine=0``.
@@ -27,6 +34,8 @@ def main():
   p.add_argument("--settle", type=int, default=200)
   p.add_argument("--repeats", type=int, default=5)
   p.add_argument("--variants", default="default", help="plugin variants (see above), comma-separated")
+  p.add_argument("--steps", type=int, default=0, help="profile N evolving steps instead of one frozen state")
+  p.add_argument("--top", type=int, default=12, help="kernels listed per table")
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
   mjm = mujoco.MjModel.from_xml_path(args.model)
@@ -41,19 +50,40 @@ def main():
     mjw.forward(m, d)
     mjw.collision(m, d)
     wp.synchronize()
-    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-    for _ in range(args.repeats):
-      mjw.collision(m, d)
-    wp.synchronize()
-    results = wp.timing_end()
-    per = collections.defaultdict(float)
-    for r in results:
-      per[r.name] += r.elapsed / args.repeats
-    total = sum(per.values())
-    print(f"== {impl}: {total:.3f} ms of GPU activity per collision, nworld {args.nworld}")
-    for name, ms in sorted(per.items(), key=lambda x: -x[1])[:12]:
-      print(f"  {ms:8.3f} ms  {name[:90]}")
+    collision_ms = _profile(lambda: mjw.collision(m, d), args.repeats)
+    if not args.steps:
+      _report(f"{impl}: collision on one frozen state", collision_ms, args.nworld, args.top)
+      continue
+    niter = []
 
+    def step():
+      mjw.step(m, d)
+      niter.append(float(d.solver_niter.numpy().mean()))  # the sync costs no GPU time
+
+    step_ms = _profile(step, args.steps)
+    in_collision = {k: v for k, v in step_ms.items() if k in collision_ms}
+    rest = {k: v for k, v in step_ms.items() if k not in collision_ms}
+    iters = sum(niter) / len(niter)
+    _report(f"{impl}: collision inside {args.steps} steps", in_collision, args.nworld, args.top)
+    _report(f"{impl}: rest of the step (mean solver iterations {iters:.2f})", rest, args.nworld, args.top)
+
+
+def _profile(fn, repeats: int) -> dict:
+  """Mean GPU milliseconds per call of ``fn``, by kernel (or memset/memcpy) name."""
+  wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+  for _ in range(repeats):
+    fn()
+  wp.synchronize()
+  per = collections.defaultdict(float)
+  for r in wp.timing_end():
+    per[r.name] += r.elapsed / repeats
+  return per
+
+
+def _report(title: str, per: dict, nworld: int, top: int):
+  print(f"== {title}: {sum(per.values()):.3f} ms of GPU activity per call, nworld {nworld}")
+  for name, ms in sorted(per.items(), key=lambda x: -x[1])[:top]:
+    print(f"  {ms:8.3f} ms  {name[:90]}")
 
 if __name__ == "__main__":
   main()

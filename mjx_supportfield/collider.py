@@ -32,6 +32,9 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 _ATTR = "_mjx_supportfield_collider"
 _STATE_ATTR = "_mjx_supportfield_state"
 _GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
+# multi-contact pairs per world whose four tilts run in parallel threads (narrowphase.tilt_kernel);
+# pairs beyond run them in patch_kernel's thread: same result, only slower
+_TILT_PAIRS_PER_WORLD = 32
 
 
 @dataclasses.dataclass
@@ -63,6 +66,7 @@ class DataState:
   patch_pair: wp.array
   patch_result: wp.array
   patch_pos: wp.array
+  tilt_result: wp.array  # (queued pairs, 4) first attempts of the tilts
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
@@ -216,6 +220,7 @@ class Collider:
         patch_pair=wp.zeros(capacity, dtype=int),
         patch_result=wp.zeros(capacity, dtype=wp.vec4),
         patch_pos=wp.zeros(capacity, dtype=wp.vec3),
+        tilt_result=wp.zeros((min(capacity, nworld * _TILT_PAIRS_PER_WORLD), narrowphase.NPERTURB), dtype=wp.vec4),
         pair_outputs=broadphase.PairOutputs(),
       )
     out = st.pair_outputs
@@ -381,6 +386,18 @@ class Collider:
           outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
         )
       wp.launch(
+        narrowphase.tilt_kernel,
+        dim=max(1, min(st.tilt_result.shape[0] * narrowphase.NPERTURB, _GRID_THREADS)),
+        inputs=[
+          m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+          m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode],
+          self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mc_perturbation, st.pair, st.pairid,
+          st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos,
+          max(1, min(st.tilt_result.shape[0] * narrowphase.NPERTURB, _GRID_THREADS)),
+        ],
+        outputs=[st.tilt_result],
+      )
+      wp.launch(
         narrowphase.patch_kernel,
         dim=nthread,
         inputs=[
@@ -390,7 +407,8 @@ class Collider:
           m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
           SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
           self.options.max_contacts_per_pair, self.options.mc_perturbation, self.options.mc_tolerance, st.pair,
-          st.pairid, st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos, nthread,
+          st.pairid, st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos, st.tilt_result,
+          nthread,
         ],
         outputs=self._contact_outputs(d),
       )

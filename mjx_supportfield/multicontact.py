@@ -30,6 +30,7 @@ NPERTURB = 4  # tilts: +-eps about each diagonal of the contact plane
 TILT_TOL = 1.0e-6
 TILT_ITERATIONS = 16
 TILT_GROWTH = 9.0  # the retry's tilt, in units of eps
+MISSED = wp.constant(-1.0e30)  # depth of a tilt whose shapes do not overlap
 
 mat43 = wp.types.matrix(shape=(4, 3), dtype=float)
 
@@ -116,35 +117,73 @@ def keep_first(first: MprResult, patch: Patch, min_spacing: float, tol: float) -
 
 
 @wp.func
-def perturbed_contacts(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  eps: float, min_spacing: float
-) -> Patch:
-  """Up to NPERTURB further contact points of A and B around ``first`` (see the module doc)."""
-  patch = Patch()
-  patch.n = 0
-  n = first.normal
-  frame = make_frame(n)
+def _tilt_axis(normal: wp.vec3, k: int) -> wp.vec3:
+  """Axis of tilt k: a diagonal of the contact plane (k < 2: one, else the other)."""
+  frame = make_frame(normal)
   t1 = wp.vec3(frame[1, 0], frame[1, 1], frame[1, 2])
   t2 = wp.vec3(frame[2, 0], frame[2, 1], frame[2, 2])
+  return wp.normalize(wp.where(k < 2, t1 + t2, t1 - t2))
+
+
+@wp.func
+def _tilted_point(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
+  axis: wp.vec3, angle: float
+) -> wp.vec4:
+  """MPR with A tilted by ``angle`` about ``axis`` through the first contact: the point (xyz)
+  and its depth along the first normal (w), A's witness point rotated back with A; depth
+  MISSED when the tilted shapes do not overlap."""
+  rot = wp.quat_to_matrix(wp.quat_from_axis_angle(axis, angle))
   # every tilted MPR starts warm: looking along the first normal, from just behind the origin
-  q0 = behind_origin(n, first.depth, scale)
+  q0 = behind_origin(first.normal, first.depth, scale)
+  r = mpr(_tilted(a, first.pos, rot), b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
+  if r.hit == 0:
+    return wp.vec4(0.0, 0.0, 0.0, MISSED)
+  # witness points in the tilted pose (pa - pb = depth * normal); A's rotates back with A
+  pa = r.pos + 0.5 * r.depth * r.normal
+  pb = r.pos - 0.5 * r.depth * r.normal
+  pa = first.pos + wp.transpose(rot) @ (pa - first.pos)
+  pos = 0.5 * (pa + pb)
+  return wp.vec4(pos[0], pos[1], pos[2], wp.dot(pa - pb, first.normal))
+
+
+@wp.func
+def first_tilt(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
+  eps: float, k: int
+) -> wp.vec4:
+  """Tilt k's first attempt (point, depth; see _tilted_point), on its own: the four of a pair
+  can run in four threads (narrowphase.tilt_kernel) and be handed to perturbed_contacts."""
+  return _tilted_point(a, b, ms, mode, first, scale, tol, iterations, _tilt_axis(first.normal, k),
+                       wp.where(k % 2 == 0, eps, -eps))
+
+
+@wp.func
+def perturbed_contacts(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
+  eps: float, min_spacing: float, firsts: wp.mat44, nfirst: int
+) -> Patch:
+  """Up to NPERTURB further contact points of A and B around ``first`` (see the module doc).
+
+  ``firsts`` row k holds first_tilt(k) when k < nfirst (computed beforehand, in parallel);
+  the others, and every steeper retry, are computed here.
+  """
+  patch = Patch()
+  patch.n = 0
   for k in range(NPERTURB):
-    axis = wp.normalize(wp.where(k < 2, t1 + t2, t1 - t2))
+    axis = _tilt_axis(first.normal, k)
     angle = float(wp.where(k % 2 == 0, eps, -eps))
     for attempt in range(2):
-      rot = wp.quat_to_matrix(wp.quat_from_axis_angle(axis, angle))
+      q = wp.vec4()
+      if attempt == 0 and k < nfirst:
+        q = wp.vec4(firsts[k, 0], firsts[k, 1], firsts[k, 2], firsts[k, 3])
+      else:
+        q = _tilted_point(a, b, ms, mode, first, scale, tol, iterations, axis, angle)
       angle *= TILT_GROWTH
-      tilted = _tilted(a, first.pos, rot)
-      r = mpr(tilted, b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
-      if r.hit == 0:
+      if q[3] == MISSED:
         break
-      # witness points in the tilted pose (pa - pb = depth * normal); A's rotates back with A
-      pa = r.pos + 0.5 * r.depth * r.normal
-      pb = r.pos - 0.5 * r.depth * r.normal
-      pa = first.pos + wp.transpose(rot) @ (pa - first.pos)
-      depth = wp.dot(pa - pb, n)
-      pos = 0.5 * (pa + pb)
+      pos = wp.vec3(q[0], q[1], q[2])
+      depth = q[3]
       if attempt == 1:
         # a steep tilt's point is no deeper than the first contact: its float32 noise made one
         # deeper than the shapes' overlap

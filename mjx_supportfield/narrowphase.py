@@ -7,6 +7,7 @@ not depend on the (host-unknown) number of pairs and they can be captured in a C
 import functools
 
 import warp as wp
+from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.collision_core import geom_collision_pair
 from mujoco_warp._src.collision_core import write_contact
@@ -22,7 +23,9 @@ from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
 from mjx_supportfield.multicontact import TILT_GROWTH
+from mjx_supportfield.multicontact import NPERTURB
 from mjx_supportfield.multicontact import Patch
+from mjx_supportfield.multicontact import first_tilt
 from mjx_supportfield.multicontact import keep_first
 from mjx_supportfield.multicontact import patch_possible
 from mjx_supportfield.multicontact import perturbed_contacts
@@ -530,6 +533,83 @@ def convex_kernel(use_gjk: bool):
   return convex_narrowphase
 
 
+@wp.func
+def _queued_patch(
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  ms: MeshSupport,
+  band: float,
+  geoms: wp.vec2i,
+  worldid: int,
+  result: wp.vec4,
+  pos: wp.vec3,
+):
+  """A queued multi-contact pair: its shapes (A grown by the margin band), scale, and the first contact."""
+  a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
+  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
+  a.inflate = band
+  rb = worldid % geom_rbound.shape[0]
+  scale = wp.max(geom_rbound[rb, geoms[0]] + geom_rbound[rb, geoms[1]], 1.0e-9)
+  res = MprResult()
+  res.hit = 1
+  res.normal = wp.vec3(result[0], result[1], result[2])
+  res.depth = result[3]
+  res.pos = pos
+  return a, b, scale, res
+
+
+@wp.kernel(enable_backward=False)
+def tilt_kernel(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  tolerance: float,
+  iterations: int,
+  mc_perturbation: float,
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  patch_count: wp.array(dtype=int),
+  patch_pair: wp.array(dtype=int),
+  patch_result: wp.array(dtype=wp.vec4),
+  patch_pos: wp.array(dtype=wp.vec3),
+  nthread: int,
+  # Out:
+  tilt_result: wp.array2d(dtype=wp.vec4),
+):
+  """The first attempt of each of the four tilts of the queued multi-contact pairs, one thread
+  a tilt: the four MPRs of a pair run side by side instead of one after another in
+  patch_kernel's thread (at 1024 worlds that chain was the kernel's whole time)."""
+  tid = wp.tid()
+  for j in range(tid, wp.min(patch_count[0], tilt_result.shape[0]) * NPERTURB, nthread):
+    i = j // NPERTURB
+    k = j % NPERTURB
+    cid = patch_pair[i]
+    geoms = pair_in[cid]
+    worldid = pair_worldid_in[cid]
+    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
+    a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
+                                     wp.max(margin + gap, 0.0), geoms, worldid, patch_result[i], patch_pos[i])
+    q = first_tilt(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation, k)
+    tilt_result[i, k] = q
+
+
 @wp.kernel(enable_backward=False)
 def patch_kernel(
   # Model:
@@ -574,6 +654,7 @@ def patch_kernel(
   patch_pair: wp.array(dtype=int),
   patch_result: wp.array(dtype=wp.vec4),
   patch_pos: wp.array(dtype=wp.vec3),
+  tilt_result: wp.array2d(dtype=wp.vec4),
   nthread: int,
   # Data out:
   contact_dist_out: wp.array(dtype=float),
@@ -596,7 +677,10 @@ def patch_kernel(
   """The pairs convex_narrowphase queued for multi-contact: the tilts, then all their contacts.
 
   A separate kernel so that warps run only pairs that need the four extra MPRs: in the convex
-  kernel one such pair held its whole warp (8x the cost on a GPU)."""
+  kernel one such pair held its whole warp (8x the cost on a GPU). The first attempts of the
+  four tilts come from tilt_kernel for the first ``len(tilt_result)`` queued pairs; this
+  kernel runs the retries, and the whole of any pair beyond.
+  """
   tid = wp.tid()
   for i in range(tid, patch_count[0], nthread):
     cid = patch_pair[i]
@@ -609,23 +693,18 @@ def patch_kernel(
       geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
       pair_friction, pair_in, pairid_in, cid, worldid,
     )
-    a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
-    b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
     band = wp.max(margin + gap, 0.0)
-    a.inflate = band
-    rb = worldid % geom_rbound.shape[0]
-    scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
-    res = MprResult()
-    res.hit = 1
-    q = patch_result[i]
-    res.normal = wp.vec3(q[0], q[1], q[2])
-    res.depth = q[3]
-    res.pos = patch_pos[i]
+    a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
+                                     geoms, worldid, patch_result[i], patch_pos[i])
     # duplicates: closer than mc_tolerance x the smaller geom's box size
     ab = worldid % geom_aabb.shape[0]
     size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
+    nfirst = wp.where(i < tilt_result.shape[0], NPERTURB, 0)
+    firsts = wp.mat44()
+    if nfirst > 0:
+      firsts = wp.matrix_from_rows(tilt_result[i, 0], tilt_result[i, 1], tilt_result[i, 2], tilt_result[i, 3])
     extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
-                               mc_tolerance * size)
+                               mc_tolerance * size, firsts, nfirst)
     write_pair_contacts(
       res, extra, mc_tolerance * size, tolerance * scale, max_contacts, band, naconmax_in, margin, gap, condim,
       friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,

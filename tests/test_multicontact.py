@@ -8,6 +8,7 @@ from conftest import load
 
 import mujoco
 import mjx_supportfield as sf
+from mjx_supportfield import collider
 
 CUBE = "-.05 -.05 -.05 .05 -.05 -.05 -.05 .05 -.05 .05 .05 -.05 -.05 -.05 .05 .05 -.05 .05 -.05 .05 .05 .05 .05 .05"
 XML = f"""
@@ -177,3 +178,26 @@ def test_small_geom_sunk_in_mesh_matches_mujoco(kind, where):
   ref_normal = ref.frame[:3] * (1 if ref.geom[0] == block else -1)
   assert c.dist[k] == pytest.approx(ref.dist, abs=2e-5)
   assert np.degrees(np.arccos(np.clip(np.dot(normal, ref_normal), -1, 1))) < 1.0
+
+
+@pytest.mark.parametrize("per_world", [0, 1])
+def test_parallel_tilts_match_the_sequential_ones(monkeypatch, per_world):
+  """The tilts' first attempts run in their own threads (tilt_kernel) for up to a set number of
+  queued pairs per world, the rest in patch_kernel's thread: both give the same contacts, bit
+  for bit (here with room for every pair, for one, and for none)."""
+
+  def run():
+    sim = load(XML, nworld=2)
+    sf.install(sim.mjm, sim.m)
+    sf.collision(sim.m, sim.d)
+    n = int(sim.d.nacon.numpy()[0])
+    c = sim.d.contact
+    rows = np.concatenate([c.worldid.numpy()[:n, None], c.geom.numpy()[:n], c.dist.numpy()[:n, None],
+                           c.pos.numpy()[:n], c.frame.numpy()[:n].reshape(n, 9)], axis=1)
+    return rows[np.lexsort(rows.T[::-1])]
+
+  parallel = run()
+  monkeypatch.setattr(collider, "_TILT_PAIRS_PER_WORLD", per_world)
+  fewer = run()
+  assert len(parallel) >= 2 * 8  # both worlds: the cube and cylinder patches, the ball
+  np.testing.assert_array_equal(fewer, parallel)

@@ -22,8 +22,10 @@ class Options:
       along its normal, warm-started) or "gjk" (GJK distance, EPA for overlapping cores).
     mpr_iterations: iteration cap of each MPR (or GJK / EPA) loop.
     mpr_tolerance: MPR convergence tolerance, relative to the pair's size.
-    mpr_refine: MPR reruns along the last normal (the shallowest answer wins); 0 = plain MPR,
-      which reports the penetration along the centre-to-centre line.
+    mpr_refine: MPR reruns along the last normal (the shallowest answer wins); 0 = no reruns:
+      the penetration along the centre-to-centre line (or, warm-started, along the previous
+      normal). At any value an answer deeper than 0.1 x the pair's size is still checked along
+      both shapes' local axes.
     sap_axis: axis (0, 1, 2) on which the sweep-and-prune projects the boxes.
     multi_contact: more contacts per MPR pair by pose perturbation (not for spheres and
       ellipsoids); analytic pairs keep MuJoCo's own multi-point routines either way.

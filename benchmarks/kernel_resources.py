@@ -29,6 +29,7 @@ def kernels() -> dict:
   return {
     "convex (MPR)": narrowphase.convex_kernel(False),
     "convex (GJK/EPA)": narrowphase.convex_kernel(True),
+    "tilt (multi-contact)": narrowphase.tilt_kernel,
     "patch (multi-contact)": narrowphase.patch_kernel,
   }
 

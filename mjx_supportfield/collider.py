@@ -85,6 +85,46 @@ def _check_heightfields(mjm: mujoco.MjModel) -> None:
                        " positive, elevation and base non-negative")
 
 
+@wp.kernel(enable_backward=False)
+def start_collision(
+  # In:
+  incremental: bool,
+  warm_start: bool,
+  # Out:
+  ncollision: wp.array(dtype=int),
+  nacon: wp.array(dtype=int),
+  ndropped: wp.array(dtype=int),
+  nonfinite: wp.array(dtype=int),
+  world_npair: wp.array(dtype=int),
+  npair: wp.array(dtype=int),
+  nwarned: wp.array(dtype=int),
+  queue_count: wp.array(dtype=int),
+  patch_count: wp.array(dtype=int),
+  warm_stamp: wp.array(dtype=int),
+  warm_misses: wp.array(dtype=int),
+):
+  """Resets the collision stage's counters, one thread a world (one launch instead of ten
+  memsets: on a few-geom scene those cost more than the collisions). The incremental pass of
+  a sleeping step keeps the contacts, drop counts and flags of the first pass."""
+  worldid = wp.tid()
+  world_npair[worldid] = 0
+  if not incremental:
+    ndropped[worldid] = 0
+    nonfinite[worldid] = 0
+  if worldid != 0:
+    return
+  ncollision[0] = 0
+  npair[0] = 0
+  nwarned[0] = 0
+  patch_count[0] = 0
+  for q in range(queue_count.shape[0]):
+    queue_count[q] = 0
+  if not incremental:
+    nacon[0] = 0
+  if warm_start:
+    warmstart.advance_stamp(warm_stamp, warm_misses)
+
+
 class Collider:
   """Everything the plugin built for one MuJoCo Warp model (see ``install``)."""
 
@@ -247,14 +287,14 @@ class Collider:
       return
     st = self.state(m, d)
     incremental = awake_prev is not None
-    d.ncollision.zero_()
-    if not incremental:
-      d.nacon.zero_()
-      st.ndropped.zero_()
-      st.nonfinite.zero_()
-    st.world_npair.zero_()
-    st.npair.zero_()
-    st.nwarned.zero_()
+    warm = bool(self.mpr_types) and self.options.warm_start
+    wp.launch(
+      start_collision,
+      dim=d.nworld,
+      inputs=[incremental, warm],
+      outputs=[d.ncollision, d.nacon, st.ndropped, st.nonfinite, st.world_npair, st.npair, st.nwarned, st.queue_count,
+               st.patch_count, st.warm.stamp, st.warm.misses],
+    )
 
     self._broadphase(m, d, st, awake_prev)
     self._narrowphase(m, d, st)
@@ -339,7 +379,6 @@ class Collider:
     queue_inputs = [st.queue_count, st.queue_pair, st.pair, st.pairid, st.pair_worldid, nthread]
     gjk_all = self.options.narrowphase == "gjk"
     if self.analytic_types or self.mpr_types:
-      st.queue_count.zero_()
       wp.launch(
         narrowphase.queue_pairs,
         dim=nthread,
@@ -362,9 +401,6 @@ class Collider:
       )
     if self.mpr_types:
       warm = st.warm
-      st.patch_count.zero_()
-      if self.options.warm_start:
-        wp.launch(warmstart.advance, dim=1, outputs=[warm.stamp, warm.misses])
       # MPR's pairs, then GJK's (all with narrowphase="gjk", else those with a sphere or capsule)
       for use_gjk in (False, True):
         if (use_gjk and not (gjk_all or self.has_core_pairs)) or (not use_gjk and gjk_all):

@@ -47,9 +47,9 @@ def make_cache(nworld: int, nslot: int) -> WarmCache:
   )
 
 
-@wp.kernel(enable_backward=False)
-def advance(stamp: wp.array(dtype=int), misses: wp.array(dtype=int)):
-  """Starts a new collision call (a kernel, so it runs inside a captured graph)."""
+@wp.func
+def advance_stamp(stamp: wp.array(dtype=int), misses: wp.array(dtype=int)):
+  """Starts a new collision call (on the device, so it runs inside a captured graph)."""
   stamp[0] = stamp[0] + 1
   misses[0] = 0
 

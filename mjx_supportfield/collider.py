@@ -32,7 +32,7 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 _ATTR = "_mjx_supportfield_collider"
 _STATE_ATTR = "_mjx_supportfield_state"
 _GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
-# multi-contact pairs per world whose four tilts run in parallel threads (narrowphase.tilt_kernel);
+# multi-contact pairs per world whose tilts run in parallel threads (narrowphase.tilt_kernel);
 # pairs beyond run them in patch_kernel's thread: same result, only slower
 _TILT_PAIRS_PER_WORLD = 32
 
@@ -66,7 +66,7 @@ class DataState:
   patch_pair: wp.array
   patch_result: wp.array
   patch_pos: wp.array
-  tilt_result: wp.array  # (queued pairs, 4) first attempts of the tilts
+  tilt_result: wp.array  # (queued pairs, 8) the tilts' MPRs, both attempts
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
@@ -260,7 +260,7 @@ class Collider:
         patch_pair=wp.zeros(capacity, dtype=int),
         patch_result=wp.zeros(capacity, dtype=wp.vec4),
         patch_pos=wp.zeros(capacity, dtype=wp.vec3),
-        tilt_result=wp.zeros((min(capacity, nworld * _TILT_PAIRS_PER_WORLD), narrowphase.NPERTURB), dtype=wp.vec4),
+        tilt_result=wp.zeros((min(capacity, nworld * _TILT_PAIRS_PER_WORLD), 2 * narrowphase.NPERTURB), dtype=wp.vec4),
         pair_outputs=broadphase.PairOutputs(),
       )
     out = st.pair_outputs
@@ -423,13 +423,13 @@ class Collider:
         )
       wp.launch(
         narrowphase.tilt_kernel,
-        dim=max(1, min(st.tilt_result.shape[0] * narrowphase.NPERTURB, _GRID_THREADS)),
+        dim=max(1, min(st.tilt_result.shape[0] * 2 * narrowphase.NPERTURB, _GRID_THREADS)),
         inputs=[
           m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
           m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode],
           self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mc_perturbation, st.pair, st.pairid,
           st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos,
-          max(1, min(st.tilt_result.shape[0] * narrowphase.NPERTURB, _GRID_THREADS)),
+          max(1, min(st.tilt_result.shape[0] * 2 * narrowphase.NPERTURB, _GRID_THREADS)),
         ],
         outputs=[st.tilt_result],
       )

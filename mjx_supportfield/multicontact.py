@@ -148,25 +148,28 @@ def _tilted_point(
 
 
 @wp.func
-def first_tilt(
+def tilt_attempt(
   a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  eps: float, k: int
+  eps: float, k: int, attempt: int
 ) -> wp.vec4:
-  """Tilt k's first attempt (point, depth; see _tilted_point), on its own: the four of a pair
-  can run in four threads (narrowphase.tilt_kernel) and be handed to perturbed_contacts."""
-  return _tilted_point(a, b, ms, mode, first, scale, tol, iterations, _tilt_axis(first.normal, k),
-                       wp.where(k % 2 == 0, eps, -eps))
+  """Attempt ``attempt`` (0, or 1: TILT_GROWTH times steeper) of tilt k (point, depth; see
+  _tilted_point), on its own: all eight of a pair can run in eight threads
+  (narrowphase.tilt_kernel) and be handed to perturbed_contacts."""
+  angle = float(wp.where(k % 2 == 0, eps, -eps))
+  if attempt == 1:
+    angle *= TILT_GROWTH
+  return _tilted_point(a, b, ms, mode, first, scale, tol, iterations, _tilt_axis(first.normal, k), angle)
 
 
 @wp.func
 def perturbed_contacts(
   a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  eps: float, min_spacing: float, firsts: wp.mat44, nfirst: int
+  eps: float, min_spacing: float, attempts: wp.array2d(dtype=wp.vec4), row: int
 ) -> Patch:
   """Up to NPERTURB further contact points of A and B around ``first`` (see the module doc).
 
-  ``firsts`` row k holds first_tilt(k) when k < nfirst (computed beforehand, in parallel);
-  the others, and every steeper retry, are computed here.
+  With ``row`` >= 0, ``attempts[row, attempt * NPERTURB + k]`` holds tilt_attempt(k, attempt),
+  computed beforehand in parallel; with row < 0 the attempts are computed here, as needed.
   """
   patch = Patch()
   patch.n = 0
@@ -175,8 +178,8 @@ def perturbed_contacts(
     angle = float(wp.where(k % 2 == 0, eps, -eps))
     for attempt in range(2):
       q = wp.vec4()
-      if attempt == 0 and k < nfirst:
-        q = wp.vec4(firsts[k, 0], firsts[k, 1], firsts[k, 2], firsts[k, 3])
+      if row >= 0:
+        q = attempts[row, attempt * NPERTURB + k]
       else:
         q = _tilted_point(a, b, ms, mode, first, scale, tol, iterations, axis, angle)
       angle *= TILT_GROWTH

@@ -79,7 +79,7 @@ def broadphase_ms(path: str, nworld: int, launches: int) -> dict:
   st = collider.state(m, d)
 
   def broadphase():
-    for counter in (st.world_npair, st.npair, st.nwarned):  # as Collider.collision does
+    for counter in (st.world_npair, st.npair, st.nwarned):  # the counters the broad phase adds to
       counter.zero_()
     collider._broadphase(m, d, st, None)
 

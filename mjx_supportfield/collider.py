@@ -382,7 +382,11 @@ class Collider:
       wp.launch(
         narrowphase.queue_pairs,
         dim=nthread,
-        inputs=[m.geom_type, self.pair_queue_type, self.geom_nonconvex, int(gjk_all), st.npair, st.pair, nthread],
+        inputs=[
+          m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin, m.pair_gap,
+          d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode], self.pair_queue_type,
+          self.geom_nonconvex, int(gjk_all), st.npair, st.pair, st.pairid, st.pair_worldid, nthread,
+        ],
         outputs=[st.queue_count, st.queue_pair],
       )
     if self.analytic_types:

@@ -134,6 +134,15 @@ def interior_point(a: Shape, b: Shape, scale: float) -> Vertex:
 
 
 @wp.func
+def apart_along_centres(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float) -> bool:
+  """Whether A and B are proven apart along the line through their centres: the test of MPR's
+  first step from interior_point, so mpr() from there misses exactly for these pairs."""
+  p0 = interior_point(a, b, scale)
+  d = wp.normalize(-p0.v)
+  return wp.dot(_support(a, b, ms, d, mode).v, d) <= 0.0
+
+
+@wp.func
 def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float, tol: float, iterations: int) -> MprResult:
   """Penetration of A and B by MPR from interior point p0 of A - B; hit == 0 when they do not overlap.
 

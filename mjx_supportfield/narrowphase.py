@@ -19,6 +19,7 @@ from mujoco_warp._src.types import vec5
 from mjx_supportfield import warmstart
 from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import apart_along_centres
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
@@ -300,16 +301,57 @@ def has_core(type1: int, type2: int) -> bool:
           or type2 == GeomType.CAPSULE)
 
 
+@wp.func
+def _apart(
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  ms: MeshSupport,
+  support_mode: int,
+  geoms: wp.vec2i,
+  pairid: int,
+  worldid: int,
+) -> bool:
+  """apart_along_centres for a pair as convex_narrowphase poses it (A grown by the margin band)."""
+  margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid, worldid)
+  a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
+  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
+  a.inflate = wp.max(margin + gap, 0.0)
+  rb = worldid % geom_rbound.shape[0]
+  return apart_along_centres(a, b, ms, support_mode, wp.max(geom_rbound[rb, geoms[0]] + geom_rbound[rb, geoms[1]], 1.0e-9))
+
+
 @wp.kernel(enable_backward=False)
 def queue_pairs(
   # Model:
   geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
   # In:
+  ms: MeshSupport,
+  support_mode: int,
   pair_queue_type: wp.array(dtype=int),
   geom_nonconvex: wp.array(dtype=int),
   gjk_all: int,
   npair_in: wp.array(dtype=int),
   pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
   nthread: int,
   # Out:
   queue_count: wp.array(dtype=int),
@@ -324,6 +366,10 @@ def queue_pairs(
   pair with a sphere or capsule goes to GJK (a point or segment core grown by a radius: GJK
   gives the exact nearest points, where MPR's normal drifts for a small sphere sunk deep), as
   do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py.
+
+  An MPR pair that MPR's first step proves apart (two support points, apart_along_centres) is
+  not queued at all: in a pile most broad-phase pairs are such near misses, and in the MPR
+  kernel's warps their lanes idled beside the pairs that touch.
   """
   tid = wp.tid()
   for cid in range(tid, npair_in[0], nthread):
@@ -336,6 +382,9 @@ def queue_pairs(
         continue
       if gjk_all != 0 or has_core(type1, type2):
         queue = QUEUE_GJK
+      elif _apart(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
+                  geom_xpos_in, geom_xmat_in, ms, support_mode, geoms, pairid_in[cid][0], pair_worldid_in[cid]):
+        continue
     if queue >= 0:
       slot = wp.atomic_add(queue_count, queue, 1)
       queue_pair[queue, slot] = cid

@@ -27,6 +27,7 @@ from mjx_supportfield.compare import match
 from mjx_supportfield.compare import mujoco_contacts
 from mjx_supportfield.compare import sample_states
 from mjx_supportfield.compare import warp_contacts
+from mjx_supportfield.mpr import apart_along_centres
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
@@ -272,8 +273,8 @@ class Pairs:
 
 
 # output columns
-SEP, DIST, GNORMAL, PA, PB, HIT, DEPTH, NORMAL, POS, MHIT, MDEPTH, MNORMAL = 0, 1, 2, 5, 8, 11, 12, 13, 16, 19, 20, 21
-NOUT = 24
+SEP, DIST, GNORMAL, PA, PB, HIT, DEPTH, NORMAL, POS, MHIT, MDEPTH, MNORMAL, APART = 0, 1, 2, 5, 8, 11, 12, 13, 16, 19, 20, 21, 24
+NOUT = 25
 
 
 @wp.func
@@ -303,6 +304,7 @@ def _evaluate(ms: MeshSupport, sa: wp.array(dtype=Shape), sb: wp.array(dtype=Sha
   out[i, MHIT] = float(m.hit)
   out[i, MDEPTH] = m.depth
   _put(out, i, MNORMAL, m.normal)
+  out[i, APART] = float(apart_along_centres(a, b, ms, SUPPORT_REFINED, scale[i]))
 
 
 def _seed(*parts):
@@ -383,6 +385,23 @@ def test_all_finite(results):
   for kind in results.values():
     for meta, row in kind:
       assert np.all(np.isfinite(row)), f"{_where(meta)}: {row}"
+
+
+def test_apart_along_centres(results):
+  """The narrow phase's queue drops pairs that MPR's first step proves apart: only pairs MPR
+  misses, never an overlapping one (the separated pairs here are mostly offset from the line
+  through their centres, so only some of them are proven apart)."""
+  napart = nseparated = 0
+  for kind, rows in results.items():
+    for meta, row in rows:
+      if row[APART]:
+        assert row[MHIT] == 0, f"{_where(meta)}: proven apart, yet MPR finds a contact"
+      if kind in ("penetrating", "band"):
+        assert not row[APART], f"{_where(meta)}: overlapping, yet proven apart"
+      if kind == "separated":
+        nseparated += 1
+        napart += int(row[APART])
+  assert napart >= nseparated // 3, f"only {napart} of {nseparated} separated pairs proven apart"
 
 
 def test_separated_distance(results):

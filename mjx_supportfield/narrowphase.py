@@ -237,6 +237,28 @@ def posed_shape(
 
 
 @wp.func
+def posed_pair(
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  ms: MeshSupport,
+  band: float,
+  geoms: wp.vec2i,
+  worldid: int,
+):
+  """A pair as the narrow phase collides it: A grown by the margin band, B, and the pair's scale
+  (the sum of the bounding radii; thresholds are relative to it)."""
+  a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
+  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
+  a.inflate = band
+  rb = worldid % geom_rbound.shape[0]
+  return a, b, wp.max(geom_rbound[rb, geoms[0]] + geom_rbound[rb, geoms[1]], 1.0e-9)
+
+
+@wp.func
 def write_pair_contacts(
   res: MprResult,
   extra: Patch,
@@ -321,11 +343,9 @@ def _apart(
 ) -> bool:
   """apart_along_centres for a pair as convex_narrowphase poses it (A grown by the margin band)."""
   margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid, worldid)
-  a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
-  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
-  a.inflate = wp.max(margin + gap, 0.0)
-  rb = worldid % geom_rbound.shape[0]
-  return apart_along_centres(a, b, ms, support_mode, wp.max(geom_rbound[rb, geoms[0]] + geom_rbound[rb, geoms[1]], 1.0e-9))
+  a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
+                           wp.max(margin + gap, 0.0), geoms, worldid)
+  return apart_along_centres(a, b, ms, support_mode, scale)
 
 
 @wp.kernel(enable_backward=False)
@@ -509,13 +529,11 @@ def convex_kernel(use_gjk: bool):
         cid,
         worldid,
       )
-      a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
-      b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
       # contacts are wanted up to margin + gap apart: grow A by that band, shrink the answer back
       band = wp.max(margin + gap, 0.0)
-      a.inflate = band
+      a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
+                               geoms, worldid)
       rb = worldid % geom_rbound.shape[0]
-      scale = wp.max(geom_rbound[rb, g1] + geom_rbound[rb, g2], 1.0e-9)
       key = g1 * geom_type.shape[0] + g2
       res = MprResult()
       res.hit = 0
@@ -598,11 +616,8 @@ def _queued_patch(
   pos: wp.vec3,
 ):
   """A queued multi-contact pair: its shapes (A grown by the margin band), scale, and the first contact."""
-  a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
-  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
-  a.inflate = band
-  rb = worldid % geom_rbound.shape[0]
-  scale = wp.max(geom_rbound[rb, geoms[0]] + geom_rbound[rb, geoms[1]], 1.0e-9)
+  a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
+                           geoms, worldid)
   res = MprResult()
   res.hit = 1
   res.normal = wp.vec3(result[0], result[1], result[2])

@@ -377,6 +377,8 @@ class Collider:
     nthread = max(1, min(st.capacity, _GRID_THREADS))
     pair_inputs = [st.npair, st.pair, st.pairid, st.pair_worldid, nthread]
     queue_inputs = [st.queue_count, st.queue_pair, st.pair, st.pairid, st.pair_worldid, nthread]
+    # analytic pairs are cheap: as many threads as contacts fit, as stock MuJoCo Warp launches them
+    nthread_analytic = max(1, min(nthread, d.naconmax))
     gjk_all = self.options.narrowphase == "gjk"
     if self.analytic_types or self.mpr_types:
       wp.launch(
@@ -392,7 +394,7 @@ class Collider:
     if self.analytic_types:
       wp.launch(
         narrowphase.analytic_kernel(self.analytic_types),
-        dim=nthread,
+        dim=nthread_analytic,
         inputs=[
           m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
           m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.mesh_vertadr, m.mesh_vertnum,
@@ -400,7 +402,7 @@ class Collider:
           m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
           m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
           m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
-        ] + queue_inputs,
+        ] + queue_inputs[:-1] + [nthread_analytic],
         outputs=self._contact_outputs(d),
       )
     if self.mpr_types:

@@ -200,3 +200,26 @@ def test_graph_capture_matches_uncaptured():
     assert int(d_cap.nacon.numpy()[0]) == int(d_ref.nacon.numpy()[0])
     assert sf.get_collider(m).stats(d_cap)["pairs"] == sf.get_collider(m).stats(d_ref)["pairs"]
     sf.uninstall(m)
+
+
+def test_more_pairs_than_threads_of_the_analytic_kernel():
+  """The analytic kernel runs as many threads as contacts fit (as stock MuJoCo Warp does) and
+  walks its queue with a grid-stride loop: with 12 analytic pairs and room for 4 contacts, the
+  2 touching pairs still give MuJoCo C's contacts. (Stock MuJoCo Warp, whose pair list holds
+  naconmax pairs, drops them here.)"""
+  near = "".join(  # capsule pairs end to end, offset sideways: boxes and bounding spheres overlap, 24 mm apart
+    f'<body pos="{2 * k} 0 1"><freejoint/><geom type="capsule" size=".05 .2"/></body>'
+    f'<body pos="{2 * k + 0.08} 0.08 1.45"><freejoint/><geom type="capsule" size=".05 .2"/></body>' for k in range(10))
+  touching = ('<body pos="30 0 1"><freejoint/><geom type="sphere" size=".1"/></body>'
+              '<body pos="30 0 1.19"><freejoint/><geom type="sphere" size=".1"/></body>'
+              '<body pos="40 0 1"><freejoint/><geom type="capsule" size=".1 .2"/></body>'
+              '<body pos="40 0 1.29"><freejoint/><geom type="sphere" size=".1"/></body>')
+  xml = f"<mujoco><worldbody>{near}{touching}</worldbody></mujoco>"
+  sim = load(xml, naconmax=4)
+  sf.install(sim.mjm, sim.m)
+  sf.collision(sim.m, sim.d)
+  assert sf.get_collider(sim.m).stats(sim.d)["pairs"] == 12
+  got = contacts(sim.d, 0)
+  ref = np.array([sim.mjd.contact[i].dist for i in range(sim.mjd.ncon)])  # MuJoCo C
+  assert got.n == len(ref) == 2
+  np.testing.assert_allclose(np.sort(got.dist), np.sort(ref), atol=1e-6)

@@ -376,9 +376,10 @@ class Collider:
   def _narrowphase(self, m, d, st: DataState):
     nthread = max(1, min(st.capacity, _GRID_THREADS))
     pair_inputs = [st.npair, st.pair, st.pairid, st.pair_worldid, nthread]
-    queue_inputs = [st.queue_count, st.queue_pair, st.pair, st.pairid, st.pair_worldid, nthread]
+    queue_inputs = [st.queue_count, st.queue_pair, st.pair, st.pairid, st.pair_worldid]  # + the launch's threads
     # analytic pairs are cheap: as many threads as contacts fit, as stock MuJoCo Warp launches them
     nthread_analytic = max(1, min(nthread, d.naconmax))
+    nthread_tilt = max(1, min(st.tilt_result.shape[0] * st.tilt_result.shape[1], _GRID_THREADS))
     gjk_all = self.options.narrowphase == "gjk"
     if self.analytic_types or self.mpr_types:
       wp.launch(
@@ -402,7 +403,7 @@ class Collider:
           m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
           m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
           m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
-        ] + queue_inputs[:-1] + [nthread_analytic],
+        ] + queue_inputs + [nthread_analytic],
         outputs=self._contact_outputs(d),
       )
     if self.mpr_types:
@@ -424,18 +425,18 @@ class Collider:
             self.options.max_contacts_per_pair if self.options.multi_contact else 1, self.options.mc_perturbation,
             self.mesh_sdf, self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start,
             warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses,
-          ] + queue_inputs,
+          ] + queue_inputs + [nthread],
           outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
         )
       wp.launch(
         narrowphase.tilt_kernel,
-        dim=max(1, min(st.tilt_result.shape[0] * 2 * narrowphase.NPERTURB, _GRID_THREADS)),
+        dim=nthread_tilt,
         inputs=[
           m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
           m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode],
           self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mc_perturbation, st.pair, st.pairid,
           st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos,
-          max(1, min(st.tilt_result.shape[0] * 2 * narrowphase.NPERTURB, _GRID_THREADS)),
+          nthread_tilt,
         ],
         outputs=[st.tilt_result],
       )

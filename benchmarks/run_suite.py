@@ -67,32 +67,38 @@ def install_seconds(path: str) -> dict:
   return out
 
 
-def broadphase_ms(path: str, nworld: int, launches: int) -> dict:
-  """Graph-captured time of the plugin's AABB + sweep-and-prune alone, at the settled state."""
+def broadphase_ms(path: str, nworld: int, launches: int) -> list[dict]:
+  """Graph-captured time of the plugin's broad phase alone (boxes, pairs, queues) at the settled
+  state, with each ``Options.broadphase``: "sap" and "nxn"."""
   mjm = mujoco.MjModel.from_xml_path(path)
-  mjd = bench.settled_state(mjm, 200)
-  m = mjw.put_model(mjm)
-  install(mjm, m, Options())
-  d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=int(1.5 * mjd.ncon) + 16, njmax=6 * mjd.ncon + 64)
-  mjw.forward(m, d)
-  collider = get_collider(m)
-  st = collider.state(m, d)
+  mjd = bench.settled_state(mjm, 200)  # put_data copies its geom poses: no MuJoCo Warp kernel to compile
+  rows = []
+  for mode in ("sap", "nxn"):
+    m = mjw.put_model(mjm)
+    install(mjm, m, Options(broadphase=mode))
+    d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=int(1.5 * mjd.ncon) + 16, njmax=6 * mjd.ncon + 64)
+    collider = get_collider(m)
+    st = collider.state(m, d)
 
-  def broadphase():
-    for counter in (st.world_npair, st.npair, st.nwarned):  # the counters the broad phase adds to
-      counter.zero_()
-    collider._broadphase(m, d, st, None)
+    def run():
+      for counter in (st.world_npair, st.npair, st.nwarned, st.queue_count):  # the counters the broad phase adds to
+        counter.zero_()
+      collider._broadphase(m, d, st, None)
 
-  ms = bench._time_graph(broadphase, launches)
-  return {"ngeom": mjm.ngeom, "nworld": nworld, "ms": ms, "pairs_per_world": int(st.npair.numpy()[0]) / nworld}
+    ms = bench._time_graph(run, launches)
+    rows.append({"ngeom": mjm.ngeom, "nworld": nworld, "broadphase": mode, "ms": ms,
+                 "pairs_per_world": int(st.npair.numpy()[0]) / nworld})
+  return rows
 
 
 def broadphase_scaling(nworld: int, launches: int, out: str, suffix: str) -> None:
-  """The broad phase alone on the 32-, 256- and 1024-mesh piles: <out>/<date>-<device>-broadphase<suffix>.json."""
+  """The broad phase alone on the 32-, 256- and 1024-mesh piles, sweep-and-prune and nxn:
+  <out>/<date>-<device>-broadphase<suffix>.json."""
   scaling = []
   for name in BROADPHASE_SCENES:
-    scaling.append(broadphase_ms(SCENES[name][0], nworld, launches))
-    print(json.dumps(scaling[-1]), flush=True)
+    for row in broadphase_ms(SCENES[name][0], nworld, launches):
+      scaling.append(row)
+      print(json.dumps(row), flush=True)
   device = bench.device_name()
   tag = device.split()[-1].lower() if wp.get_device().is_cuda else "cpu"
   path = os.path.join(out, f"{datetime.date.today()}-{tag}-broadphase{suffix}.json")
@@ -155,7 +161,7 @@ def main(argv=None):
     installs[name] = install_seconds(path)
     rows += bench.bench_scene(path, nworlds, args.launches, 200, None, options, progress)
     if name in BROADPHASE_SCENES:
-      scaling.append(broadphase_ms(path, BROADPHASE_NWORLD, args.launches))
+      scaling += broadphase_ms(path, BROADPHASE_NWORLD, args.launches)
     print(f"\n{bench.format_table([r for r in rows if r.scene == bench.scene_name(path)])}", flush=True)
     bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling,
                                                    "options": json.loads(args.options)})

@@ -1,14 +1,21 @@
-"""Sweep-and-prune broad phase with a warm-started per-world endpoint order.
+"""Broad phase: the pairs of boxes that overlap, after MuJoCo's pair filters, dealt out to
+the narrow-phase kernels' queues.
 
-Each world keeps the order of its geoms along one axis from the previous step; insertion
-sort (one thread per world) restores it in near-linear time when little moved. The sweep
-runs one thread per (world, sorted box): it walks the boxes that start inside its own,
-tests the other two axes, then applies MuJoCo's pair filters (``m.nxn_pairid``: contype /
-conaffinity, parent-child, weld, exclude), sleeping bodies and MuJoCo Warp's own bounding
-filters (plane, sphere, AABB, OBB per ``m.opt.broadphase_filter``).
+Two ways, chosen at install (``Options.broadphase``):
 
-Explicit ``<pair>``s and pairs watched by collision sensors are not swept: a small kernel
-tests them with their own margins, as MuJoCo does.
+- nxn, for models with few pairs after the static filters (``m.nxn_geom_pair_filtered``):
+  one thread per (world, pair) tests it and lists it; one launch.
+- Sweep-and-prune, which scales with the geoms, not their pairs: each world keeps the order of
+  its geoms along one axis from the previous step; insertion sort (one thread per world)
+  restores it in near-linear time when little moved. The sweep runs one thread per (world,
+  sorted box): it walks the boxes that start inside its own, tests the other two axes, then
+  applies MuJoCo's pair filters (``m.nxn_pairid``: contype / conaffinity, parent-child, weld,
+  exclude). Explicit ``<pair>``s and pairs watched by collision sensors are not swept: a small
+  kernel tests them with their own margins, as MuJoCo does. Pairs land in per-world slots
+  and are then compacted into one list, worlds back to back.
+
+Both apply the sleep rules and MuJoCo Warp's own bounding filters (plane, sphere, AABB, OBB
+per ``m.opt.broadphase_filter``).
 """
 
 import functools
@@ -19,10 +26,14 @@ from mujoco_warp._src.math import upper_tri_index
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import SleepState
 
+from mjx_supportfield.narrowphase import PairQueues
+from mjx_supportfield.narrowphase import queue_pair
+
 
 @wp.struct
 class PairOutputs:
-  """Where the broad phase writes: per-world pair slots for the plugin, a list for stock."""
+  """Where the broad phase writes: the plugin's pair list (through per-world slots with
+  sweep-and-prune, directly with nxn) and the list handed to stock MuJoCo Warp."""
 
   world_npair: wp.array(dtype=int)  # pairs found per world (kept or not)
   slot_pair: wp.array(dtype=wp.vec2i)  # world * max_pairs + k
@@ -34,6 +45,10 @@ class PairOutputs:
   stock_pair: wp.array(dtype=wp.vec2i)
   stock_pairid: wp.array(dtype=wp.vec2i)
   stock_worldid: wp.array(dtype=int)
+  npair: wp.array(dtype=int)  # the pair list the narrow phase walks
+  pair: wp.array(dtype=wp.vec2i)
+  pairid: wp.array(dtype=wp.vec2i)
+  pair_worldid: wp.array(dtype=int)
 
 
 @wp.func
@@ -54,6 +69,50 @@ def _overlap(lo1: wp.vec3, hi1: wp.vec3, lo2: wp.vec3, hi2: wp.vec3) -> bool:
 
 
 @wp.func
+def _empty(aabb_lo: wp.array2d(dtype=wp.vec3), aabb_hi: wp.array2d(dtype=wp.vec3), worldid: int, g: int) -> bool:
+  """An empty box marks an absent mesh or a non-finite pose (aabb.update_aabbs)."""
+  return aabb_lo[worldid, g][0] > aabb_hi[worldid, g][0]
+
+
+@wp.func
+def _ordered(g1: int, g2: int, type1: int, type2: int) -> wp.vec2i:
+  """The pair with the lower geom type first, as the narrow-phase routines expect."""
+  if type1 > type2:
+    return wp.vec2i(g2, g1)
+  return wp.vec2i(g1, g2)
+
+
+@wp.func
+def _emit_stock(pair: wp.vec2i, pairid: wp.vec2i, worldid: int, naconmax: int, out: PairOutputs):
+  """Appends a pair to the list handed to stock MuJoCo Warp, which flags ncollision > naconmax
+  itself (d.overflow, BROADPHASE)."""
+  cid = wp.atomic_add(out.ncollision, 0, 1)
+  if cid < naconmax:
+    out.stock_pair[cid] = pair
+    out.stock_pairid[cid] = pairid
+    out.stock_worldid[cid] = worldid
+
+
+@wp.func
+def _claim(worldid: int, max_pairs: int, warn: bool, out: PairOutputs) -> int:
+  """The pair's place within its world's budget, or -1 past max_pairs (counted and flagged)."""
+  k = wp.atomic_add(out.world_npair, worldid, 1)
+  if k < max_pairs:
+    return k
+  wp.atomic_add(out.ndropped, worldid, 1)
+  wp.atomic_or(out.overflow, worldid, int(OverflowType.BROADPHASE))
+  if warn:
+    if wp.atomic_add(out.nwarned, 0, 1) == 0:
+      wp.printf(
+        "mjx_supportfield: broadphase overflow - more than %d pairs in world %d; raise Options.max_collision_pairs\n"
+        "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.BROADPHASE (or = 0 for all)\n",
+        max_pairs,
+        worldid,
+      )
+  return -1
+
+
+@wp.func
 def _emit(
   g1: int,
   g2: int,
@@ -68,32 +127,14 @@ def _emit(
   # Out:
   out: PairOutputs,
 ):
-  """Appends a pair to the plugin's list or to the list handed to stock MuJoCo Warp."""
-  pair = wp.vec2i(g1, g2)
-  if type1 > type2:
-    pair = wp.vec2i(g2, g1)
-
+  """Sweep-and-prune: appends a pair to its world's slots (compact_pairs lists them) or to the
+  list handed to stock MuJoCo Warp."""
+  pair = _ordered(g1, g2, type1, type2)
   if to_stock:
-    # stock MuJoCo Warp flags ncollision > naconmax itself (d.overflow, BROADPHASE)
-    cid = wp.atomic_add(out.ncollision, 0, 1)
-    if cid < naconmax:
-      out.stock_pair[cid] = pair
-      out.stock_pairid[cid] = pairid
-      out.stock_worldid[cid] = worldid
+    _emit_stock(pair, pairid, worldid, naconmax, out)
     return
-
-  k = wp.atomic_add(out.world_npair, worldid, 1)
-  if k >= max_pairs:
-    wp.atomic_add(out.ndropped, worldid, 1)
-    wp.atomic_or(out.overflow, worldid, int(OverflowType.BROADPHASE))
-    if warn:
-      if wp.atomic_add(out.nwarned, 0, 1) == 0:
-        wp.printf(
-          "mjx_supportfield: broadphase overflow - more than %d pairs in world %d; raise Options.max_collision_pairs\n"
-          "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.BROADPHASE (or = 0 for all)\n",
-          max_pairs,
-          worldid,
-        )
+  k = _claim(worldid, max_pairs, warn, out)
+  if k < 0:
     return
   # per-world slots: compact_pairs later lays the worlds out back to back, in world order,
   # so narrow-phase warps see pairs of one world (similar shapes) together
@@ -318,8 +359,7 @@ def explicit_kernel(static_key: tuple):
     geoms = explicit_pair[k]
     g1 = geoms[0]
     g2 = geoms[1]
-    # an empty box marks an absent mesh or a non-finite pose
-    if aabb_lo[worldid, g1][0] > aabb_hi[worldid, g1][0] or aabb_lo[worldid, g2][0] > aabb_hi[worldid, g2][0]:
+    if _empty(aabb_lo, aabb_hi, worldid, g1) or _empty(aabb_lo, aabb_hi, worldid, g2):
       return
     pairid = explicit_pairid[k]
     if not pair_test(
@@ -364,28 +404,130 @@ def clamp_counts(max_pairs: int, world_npair: wp.array(dtype=int), world_count_o
   world_count_out[worldid] = wp.min(world_npair[worldid], max_pairs)
 
 
-@wp.kernel
+@functools.lru_cache(maxsize=None)
+def nxn_kernel(static_key: tuple):
+  """Every pair the model's static filters keep (``m.nxn_geom_pair_filtered``), one thread per
+  (world, pair): boxes, sleep rules and bounding filters as in the sweep (explicit and sensor
+  pairs as in explicit_pairs); a kept pair goes straight to the pair list and its narrow-phase
+  queue. For a model with few pairs this one launch replaces the sort, the sweep, the count,
+  the scan and the compaction.
+
+  static_key = the _pair_test parameters.
+  """
+  pair_test = _pair_test(*static_key)
+
+  @wp.kernel(module="unique", enable_backward=False)
+  def nxn_pairs(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_bodyid: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_aabb: wp.array3d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    nxn_geom_pair: wp.array(dtype=wp.vec2i),
+    nxn_pairid: wp.array(dtype=wp.vec2i),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    body_awake_in: wp.array2d(dtype=int),
+    naconmax_in: int,
+    # In:
+    awake_prev_in: wp.array2d(dtype=int),
+    geom_stock: wp.array(dtype=int),
+    aabb_lo: wp.array2d(dtype=wp.vec3),
+    aabb_hi: wp.array2d(dtype=wp.vec3),
+    max_pairs: int,
+    warn: bool,
+    # Out:
+    out: PairOutputs,
+    queues: PairQueues,
+  ):
+    worldid, k = wp.tid()
+    geoms = nxn_geom_pair[k]
+    g1 = geoms[0]
+    g2 = geoms[1]
+    if _empty(aabb_lo, aabb_hi, worldid, g1) or _empty(aabb_lo, aabb_hi, worldid, g2):
+      return
+    pairid = nxn_pairid[k]
+    # explicit <pair>s bring their own margins: the bounding filter tests them, not the boxes
+    swept = pairid[0] < 0 and pairid[1] < 0
+    if swept and not _overlap(aabb_lo[worldid, g1], aabb_hi[worldid, g1], aabb_lo[worldid, g2], aabb_hi[worldid, g2]):
+      return
+    if not pair_test(
+      geom_bodyid,
+      geom_aabb,
+      geom_rbound,
+      geom_margin,
+      geom_gap,
+      pair_margin,
+      pair_gap,
+      geom_xpos_in,
+      geom_xmat_in,
+      body_awake_in,
+      awake_prev_in,
+      g1,
+      g2,
+      pairid,
+      worldid,
+    ):
+      return
+    pair = _ordered(g1, g2, geom_type[g1], geom_type[g2])
+    if geom_stock[g1] != 0 or geom_stock[g2] != 0 or pairid[1] >= 0:
+      _emit_stock(pair, pairid, worldid, naconmax_in, out)
+      return
+    if _claim(worldid, max_pairs, warn, out) < 0:
+      return
+    cid = wp.atomic_add(out.npair, 0, 1)
+    out.pair[cid] = pair
+    out.pairid[cid] = pairid
+    out.pair_worldid[cid] = worldid
+    queue_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
+               geom_xpos_in, geom_xmat_in, pair, pairid[0], worldid, cid, queues)
+
+  return nxn_pairs
+
+
+@wp.kernel(enable_backward=False)
 def compact_pairs(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
   max_pairs: int,
   world_count: wp.array(dtype=int),
   world_start: wp.array(dtype=int),
-  slot_pair: wp.array(dtype=wp.vec2i),
-  slot_pairid: wp.array(dtype=wp.vec2i),
   # Out:
-  npair_out: wp.array(dtype=int),
-  pair_out: wp.array(dtype=wp.vec2i),
-  pairid_out: wp.array(dtype=wp.vec2i),
-  pair_worldid_out: wp.array(dtype=int),
+  out: PairOutputs,
+  queues: PairQueues,
 ):
-  """Copies each world's slots to its range of the pair list (world_start: exclusive scan)."""
+  """Copies each world's slots to its range of the pair list (world_start: exclusive scan) and
+  queues each pair for its narrow-phase kernel."""
   worldid, k = wp.tid()
   n = world_count[worldid]
   if k == 0 and worldid == world_count.shape[0] - 1:
-    npair_out[0] = world_start[worldid] + n
+    out.npair[0] = world_start[worldid] + n
   if k >= n:
     return
   src = worldid * max_pairs + k
-  dst = world_start[worldid] + k
-  pair_out[dst] = slot_pair[src]
-  pairid_out[dst] = slot_pairid[src]
-  pair_worldid_out[dst] = worldid
+  cid = world_start[worldid] + k
+  pair = out.slot_pair[src]
+  pairid = out.slot_pairid[src]
+  out.pair[cid] = pair
+  out.pairid[cid] = pairid
+  out.pair_worldid[cid] = worldid
+  queue_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
+             geom_xpos_in, geom_xmat_in, pair, pairid[0], worldid, cid, queues)

@@ -22,6 +22,7 @@ from mjx_supportfield import nonconvex
 from mjx_supportfield import narrowphase
 from mjx_supportfield import warmstart
 from mjx_supportfield.aabb import update_aabbs
+from mjx_supportfield.options import NXN_MAX_PAIRS
 from mjx_supportfield.options import Options
 from mjx_supportfield.sdf import build_mesh_sdf
 from mjx_supportfield.support_field import build_mesh_support
@@ -60,14 +61,15 @@ class DataState:
   stock_ctx: CollisionContext
   capacity: int
   warm: warmstart.WarmCache
-  queue_count: wp.array  # pairs in each narrow-phase kernel's queue (narrowphase.queue_pairs)
+  queue_count: wp.array  # pairs in each narrow-phase kernel's queue (narrowphase.queue_pair)
   queue_pair: wp.array  # (NQUEUE, capacity) the queues: indices into pair
+  queues: narrowphase.PairQueues  # the two above, and what deciding a pair's queue needs
   patch_count: wp.array  # pairs queued for multi-contact (narrowphase.patch_kernel)
   patch_pair: wp.array
   patch_result: wp.array
   patch_pos: wp.array
   tilt_result: wp.array  # (queued pairs, 8) the tilts' MPRs, both attempts
-  pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the sweep
+  pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the broad phase
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
 
@@ -147,11 +149,13 @@ class Collider:
       self.explicit_pairid = wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i)
       # no world can have more pairs than the model allows after its static filters
       self.max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
+      self.npair_filtered = len(pairs)
+      self.nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
       self.has_stock_pairs = bool(stock.any()) or bool((pairids[:, 1] >= 0).any())
 
       present = self._pair_types_present(mjm, pairs)
       self.analytic_types = tuple(t for t in narrowphase.ANALYTIC_PAIRS if t in present)
-      queue_table = np.full(narrowphase.NGEOMTYPE**2, -1, dtype=np.int32)  # see narrowphase.queue_pairs
+      queue_table = np.full(narrowphase.NGEOMTYPE**2, -1, dtype=np.int32)  # see narrowphase.PairQueues
       for t1, t2 in self.analytic_types:
         queue_table[int(t1) * narrowphase.NGEOMTYPE + int(t2)] = narrowphase.QUEUE_ANALYTIC
       self.mpr_types = []
@@ -262,6 +266,7 @@ class Collider:
         patch_pos=wp.zeros(capacity, dtype=wp.vec3),
         tilt_result=wp.zeros((min(capacity, nworld * _TILT_PAIRS_PER_WORLD), 2 * narrowphase.NPERTURB), dtype=wp.vec4),
         pair_outputs=broadphase.PairOutputs(),
+        queues=narrowphase.PairQueues(),
       )
     out = st.pair_outputs
     out.world_npair, out.slot_pair, out.slot_pairid = st.world_npair, st.slot_pair, st.slot_pairid
@@ -269,6 +274,12 @@ class Collider:
     out.stock_pair = st.stock_ctx.collision_pair
     out.stock_pairid = st.stock_ctx.collision_pairid
     out.stock_worldid = st.stock_ctx.collision_worldid
+    out.npair, out.pair, out.pairid, out.pair_worldid = st.npair, st.pair, st.pairid, st.pair_worldid
+    q = st.queues
+    q.ms, q.support_mode = self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode]
+    q.pair_queue_type, q.geom_nonconvex = self.pair_queue_type, self.geom_nonconvex
+    q.gjk_all = int(self.options.narrowphase == "gjk")
+    q.count, q.pair = st.queue_count, st.queue_pair
     return st
 
   # --- the collision stage ---------------------------------------------------------------
@@ -338,7 +349,19 @@ class Collider:
     )
     awake_prev_in = awake_prev if incremental else d.body_awake
     warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
-    outputs = [st.pair_outputs]
+    queue_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                   m.pair_gap]
+    if self.nxn:
+      wp.launch(
+        broadphase.nxn_kernel(key),
+        dim=(d.nworld, self.npair_filtered),
+        inputs=[m.geom_type, m.geom_bodyid, m.geom_dataid, m.geom_size, m.geom_aabb, m.geom_rbound, m.geom_margin,
+                m.geom_gap, m.pair_margin, m.pair_gap, m.nxn_geom_pair_filtered, m.nxn_pairid_filtered, d.geom_xpos,
+                d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo, st.aabb_hi,
+                self.max_pairs, warn],
+        outputs=[st.pair_outputs, st.queues],
+      )
+      return
     common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
                     m.pair_gap]
     common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo,
@@ -350,22 +373,22 @@ class Collider:
         broadphase.sweep_kernel(key, self.options.sap_axis),
         dim=(d.nworld, self.ngeom),
         inputs=[self.ngeom] + common_model + [m.nxn_pairid] + common_data + [self.max_pairs, warn, st.order],
-        outputs=outputs,
+        outputs=[st.pair_outputs],
       )
     if self.nexplicit:
       wp.launch(
         broadphase.explicit_kernel(key),
         dim=(d.nworld, self.nexplicit),
         inputs=common_model + common_data + [self.explicit_pair, self.explicit_pairid, self.max_pairs, warn],
-        outputs=outputs,
+        outputs=[st.pair_outputs],
       )
     wp.launch(broadphase.clamp_counts, dim=d.nworld, inputs=[self.max_pairs, st.world_npair], outputs=[st.world_count])
     wp.utils.array_scan(st.world_count, st.world_start, inclusive=False)
     wp.launch(
       broadphase.compact_pairs,
       dim=(d.nworld, self.max_pairs),
-      inputs=[self.max_pairs, st.world_count, st.world_start, st.slot_pair, st.slot_pairid],
-      outputs=[st.npair, st.pair, st.pairid, st.pair_worldid],
+      inputs=queue_model + [d.geom_xpos, d.geom_xmat, self.max_pairs, st.world_count, st.world_start],
+      outputs=[st.pair_outputs, st.queues],
     )
 
   def _contact_outputs(self, d):
@@ -381,17 +404,6 @@ class Collider:
     nthread_analytic = max(1, min(nthread, d.naconmax))
     nthread_tilt = max(1, min(st.tilt_result.shape[0] * st.tilt_result.shape[1], _GRID_THREADS))
     gjk_all = self.options.narrowphase == "gjk"
-    if self.analytic_types or self.mpr_types:
-      wp.launch(
-        narrowphase.queue_pairs,
-        dim=nthread,
-        inputs=[
-          m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin, m.pair_gap,
-          d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode], self.pair_queue_type,
-          self.geom_nonconvex, int(gjk_all), st.npair, st.pair, st.pairid, st.pair_worldid, nthread,
-        ],
-        outputs=[st.queue_count, st.queue_pair],
-      )
     if self.analytic_types:
       wp.launch(
         narrowphase.analytic_kernel(self.analytic_types),

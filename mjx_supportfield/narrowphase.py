@@ -40,7 +40,7 @@ from mjx_supportfield.types import Shape
 ANALYTIC_PAIRS = tuple(_PRIMITIVE_COLLISIONS.keys())
 
 NGEOMTYPE = len(GeomType)
-# the narrow-phase kernels' pair queues (queue_pairs)
+# the narrow-phase kernels' pair queues (queue_pair)
 QUEUE_ANALYTIC = wp.constant(0)
 QUEUE_MPR = wp.constant(1)
 QUEUE_GJK = wp.constant(2)
@@ -348,8 +348,25 @@ def _apart(
   return apart_along_centres(a, b, ms, support_mode, scale)
 
 
-@wp.kernel(enable_backward=False)
-def queue_pairs(
+@wp.struct
+class PairQueues:
+  """Where the broad phase deals out the pairs it lists: one queue per narrow-phase kernel.
+
+  ``pair_queue_type`` maps a pair's geom types (type1 * NGEOMTYPE + type2) to QUEUE_ANALYTIC or
+  QUEUE_MPR, else -1 (the heightfield and non-convex kernels, and stock MuJoCo Warp, walk the
+  whole list)."""
+
+  ms: MeshSupport
+  support_mode: int
+  pair_queue_type: wp.array(dtype=int)
+  geom_nonconvex: wp.array(dtype=int)
+  gjk_all: int  # narrowphase="gjk": every convex non-analytic pair to GJK/EPA
+  count: wp.array(dtype=int)  # (NQUEUE,) pairs in each queue
+  pair: wp.array2d(dtype=int)  # (NQUEUE, capacity): indices into the pair list
+
+
+@wp.func
+def queue_pair(
   # Model:
   geom_type: wp.array(dtype=int),
   geom_dataid: wp.array2d(dtype=int),
@@ -363,51 +380,39 @@ def queue_pairs(
   geom_xpos_in: wp.array2d(dtype=wp.vec3),
   geom_xmat_in: wp.array2d(dtype=wp.mat33),
   # In:
-  ms: MeshSupport,
-  support_mode: int,
-  pair_queue_type: wp.array(dtype=int),
-  geom_nonconvex: wp.array(dtype=int),
-  gjk_all: int,
-  npair_in: wp.array(dtype=int),
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  nthread: int,
+  geoms: wp.vec2i,
+  pairid: int,
+  worldid: int,
+  cid: int,
   # Out:
-  queue_count: wp.array(dtype=int),
-  queue_pair: wp.array2d(dtype=int),
+  queues: PairQueues,
 ):
-  """Deals the broad phase's pairs out to the analytic, MPR and GJK/EPA kernels' queues, so
-  the warps of each kernel run only pairs of their own kind (in the pair list, a pile's
-  mesh-plane pairs sat idle in the MPR kernel's warps, between the mesh-mesh pairs).
+  """Queues pair ``cid`` of the list for its narrow-phase kernel, so the warps of each kernel
+  run only pairs of their own kind (in one pair list, a pile's mesh-plane pairs sat idle in the
+  MPR kernel's warps, between the mesh-mesh pairs).
 
-  ``pair_queue_type`` maps a pair's geom types to QUEUE_ANALYTIC or QUEUE_MPR (else -1: the
-  heightfield and non-convex kernels, and stock MuJoCo Warp, walk the whole list). A convex
-  pair with a sphere or capsule goes to GJK (a point or segment core grown by a radius: GJK
-  gives the exact nearest points, where MPR's normal drifts for a small sphere sunk deep), as
-  do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py.
+  A convex pair with a sphere or capsule goes to GJK (a point or segment core grown by a
+  radius: GJK gives the exact nearest points, where MPR's normal drifts for a small sphere sunk
+  deep), as do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py.
 
   An MPR pair that MPR's first step proves apart (two support points, apart_along_centres) is
   not queued at all: in a pile most broad-phase pairs are such near misses, and in the MPR
   kernel's warps their lanes idled beside the pairs that touch.
   """
-  tid = wp.tid()
-  for cid in range(tid, npair_in[0], nthread):
-    geoms = pair_in[cid]
-    type1 = geom_type[geoms[0]]
-    type2 = geom_type[geoms[1]]
-    queue = pair_queue_type[type1 * wp.static(NGEOMTYPE) + type2]
-    if queue == QUEUE_MPR:
-      if geom_nonconvex[geoms[0]] or geom_nonconvex[geoms[1]]:
-        continue
-      if gjk_all != 0 or has_core(type1, type2):
-        queue = QUEUE_GJK
-      elif _apart(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
-                  geom_xpos_in, geom_xmat_in, ms, support_mode, geoms, pairid_in[cid][0], pair_worldid_in[cid]):
-        continue
-    if queue >= 0:
-      slot = wp.atomic_add(queue_count, queue, 1)
-      queue_pair[queue, slot] = cid
+  type1 = geom_type[geoms[0]]
+  type2 = geom_type[geoms[1]]
+  queue = queues.pair_queue_type[type1 * wp.static(NGEOMTYPE) + type2]
+  if queue == QUEUE_MPR:
+    if queues.geom_nonconvex[geoms[0]] or queues.geom_nonconvex[geoms[1]]:
+      return
+    if queues.gjk_all != 0 or has_core(type1, type2):
+      queue = QUEUE_GJK
+    elif _apart(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
+                geom_xpos_in, geom_xmat_in, queues.ms, queues.support_mode, geoms, pairid, worldid):
+      return
+  if queue >= 0:
+    slot = wp.atomic_add(queues.count, queue, 1)
+    queues.pair[queue, slot] = cid
 
 
 @functools.lru_cache(maxsize=None)
@@ -415,7 +420,7 @@ def convex_kernel(use_gjk: bool):
   """The narrow-phase kernel of the convex pairs that are not analytic: penetration by MPR
   (warm-started, refined), or, with ``use_gjk``, by GJK/EPA (gjk.py).
 
-  Each variant walks its own queue (queue_pairs). Two kernels, not one branch: EPA's polytope
+  Each variant walks its own queue (queue_pair). Two kernels, not one branch: EPA's polytope
   takes about 10 KB of stack a thread, and inlined beside MPR it made every MPR pair slower on
   the GPU.
   """

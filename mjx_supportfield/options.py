@@ -5,6 +5,9 @@ import math
 
 SUPPORT_MODES = ("field", "refined", "exact")
 NARROWPHASES = ("mpr", "gjk")
+BROADPHASES = ("auto", "nxn", "sap")
+# "auto" takes nxn up to this many pairs after MuJoCo's static filters, sweep-and-prune beyond
+NXN_MAX_PAIRS = 16384
 
 
 @dataclasses.dataclass(frozen=True)
@@ -16,6 +19,9 @@ class Options:
     support_mode: how a convex-mesh support query is answered: "field" (4-cell lookup),
       "refined" (field vertex, then hill-climb on the convex-hull graph: exact), or "exact"
       (exhaustive scan of the hull vertices).
+    broadphase: "nxn" (every pair MuJoCo's static filters keep, one thread per world and
+      pair), "sap" (sweep-and-prune: scales with the geoms, not their pairs) or "auto" (nxn
+      up to NXN_MAX_PAIRS such pairs).
     max_collision_pairs: broad-phase pair budget per world; pairs beyond it are dropped,
       counted and reported through ``d.overflow`` (``OverflowType.BROADPHASE``).
     narrowphase: penetration of the convex pairs that are not analytic: "mpr" (MPR, refined
@@ -48,6 +54,7 @@ class Options:
 
   support_res: int = 180
   support_mode: str = "refined"
+  broadphase: str = "auto"
   max_collision_pairs: int = 4096
   narrowphase: str = "mpr"
   mpr_iterations: int = 50
@@ -68,6 +75,8 @@ class Options:
     _check_int("support_res", self.support_res, 4, 4096)
     if self.support_mode not in SUPPORT_MODES:
       raise ValueError(f"Options.support_mode: {self.support_mode!r} is not one of {', '.join(SUPPORT_MODES)}")
+    if self.broadphase not in BROADPHASES:
+      raise ValueError(f"Options.broadphase: {self.broadphase!r} is not one of {', '.join(BROADPHASES)}")
     _check_int("max_collision_pairs", self.max_collision_pairs, 1, 1 << 24)
     if self.narrowphase not in NARROWPHASES:
       raise ValueError(f"Options.narrowphase: {self.narrowphase!r} is not one of {', '.join(NARROWPHASES)}")

@@ -128,12 +128,13 @@ def check_pairs(sim, qpos_worlds, label):
   assert not np.any(sim.d.overflow.numpy() & int(OverflowType.BROADPHASE))
 
 
-@pytest.mark.parametrize("sap_axis", [0, 2])
+@pytest.mark.parametrize("broadphase,sap_axis", [("sap", 0), ("sap", 2), ("nxn", 0)])
 @pytest.mark.parametrize("scene", ["primitives_plane", "convex_pile"])
-def test_pairs_against_brute_force(scene, sap_axis):
+def test_pairs_against_brute_force(scene, broadphase, sap_axis):
   rng = np.random.default_rng(1234 + sap_axis)
   sim = load(scene, nworld=NWORLD)
-  sf.install(sim.mjm, sim.m, sf.Options(sap_axis=sap_axis))
+  sf.install(sim.mjm, sim.m, sf.Options(broadphase=broadphase, sap_axis=sap_axis))
+  assert sf.get_collider(sim.m).nxn == (broadphase == "nxn")
   mjm = sim.mjm
   scale = 0.01 if scene == "convex_pile" else 0.02
 
@@ -154,13 +155,25 @@ def test_pairs_against_brute_force(scene, sap_axis):
   check_pairs(sim, q2[::-1].copy(), "worlds swapped")
 
 
+def test_auto_broadphase_follows_the_pair_count(monkeypatch):
+  """"auto" takes nxn up to NXN_MAX_PAIRS statically kept pairs and sweep-and-prune beyond."""
+  sim = load("primitives_plane", nworld=1)
+  npair = len(sim.m.nxn_geom_pair_filtered.numpy())
+  assert sf.install(sim.mjm, sim.m).nxn
+  sf.uninstall(sim.m)
+  monkeypatch.setattr(sf.collider, "NXN_MAX_PAIRS", npair - 1)
+  assert not sf.install(sim.mjm, sim.m).nxn
+  sf.uninstall(sim.m)
+
+
 @pytest.fixture(scope="module")
 def overflow_scene():
   sim = load("primitives_plane", nworld=NWORLD)
   return sim
 
 
-def test_broadphase_overflow(overflow_scene):
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+def test_broadphase_overflow(overflow_scene, broadphase):
   sim = overflow_scene
   rng = np.random.default_rng(7)
   q = np.stack([perturbed_qpos(sim.mjm, rng, 0.01, 0.1) for _ in range(NWORLD)])
@@ -168,7 +181,7 @@ def test_broadphase_overflow(overflow_scene):
   m, d = sim.m, sim.d
 
   # reference pair count with the default budget
-  sf.install(sim.mjm, m)
+  sf.install(sim.mjm, m, sf.Options(broadphase=broadphase))
   d.overflow.zero_()
   sf.collision(m, d)
   full = [len(v) for v in plugin_pairs(m, d).values()]
@@ -176,7 +189,7 @@ def test_broadphase_overflow(overflow_scene):
   assert not np.any(d.overflow.numpy() & int(OverflowType.BROADPHASE))
   sf.uninstall(m)
 
-  sf.install(sim.mjm, m, sf.Options(max_collision_pairs=2))
+  sf.install(sim.mjm, m, sf.Options(broadphase=broadphase, max_collision_pairs=2))
   try:
     m.opt.warn_overflow = 0  # keep the printf quiet
   except (AttributeError, TypeError):
@@ -195,7 +208,8 @@ def test_broadphase_overflow(overflow_scene):
   sf.uninstall(m)
 
 
-def test_overflow_only_in_crowded_world(overflow_scene):
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+def test_overflow_only_in_crowded_world(overflow_scene, broadphase):
   """A world with few pairs keeps its budget and no overflow bit; a crowded one sets it."""
   sim = overflow_scene
   m, d = sim.m, sim.d
@@ -205,7 +219,7 @@ def test_overflow_only_in_crowded_world(overflow_scene):
     adr = sim.mjm.jnt_qposadr[j]
     q[1, adr : adr + 3] = [2.0 * k, 5.0, 3.0]
   set_qpos(sim, q)
-  sf.install(sim.mjm, m, sf.Options(max_collision_pairs=2))
+  sf.install(sim.mjm, m, sf.Options(broadphase=broadphase, max_collision_pairs=2))
   try:
     m.opt.warn_overflow = 0
   except (AttributeError, TypeError):
@@ -221,11 +235,12 @@ def test_overflow_only_in_crowded_world(overflow_scene):
   sf.uninstall(m)
 
 
-def test_nonfinite_pose_skips_geom_in_its_world_only():
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+def test_nonfinite_pose_skips_geom_in_its_world_only(broadphase):
   """A NaN pose in world 1 empties that geom's box there; world 0 is untouched and reported clean."""
   sim = load("convex_pile", nworld=NWORLD)
   mjm = sim.mjm
-  sf.install(mjm, sim.m)
+  sf.install(mjm, sim.m, sf.Options(broadphase=broadphase))
   q = np.stack([mjm.qpos0.copy(), mjm.qpos0.copy()])
   set_qpos(sim, q)
   sf.collision(sim.m, sim.d)

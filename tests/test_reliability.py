@@ -398,12 +398,13 @@ def test_contact_overflow_is_flagged_counted_and_bounded(pile, capfd):
   assert np.all(np.isfinite(d.qpos.numpy()))
 
 
-def test_pair_overflow_through_step_is_flagged_once_and_bounded(capfd):
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+def test_pair_overflow_through_step_is_flagged_once_and_bounded(capfd, broadphase):
   """max_collision_pairs = 1: each mjw.step prints the plugin's BROADPHASE warning once (none with
   warn_overflow = 0), sets the bit, counts the dropped pairs, and writes no pair past its budget."""
   sim = load("convex_pile", nworld=2)
   m, d = sim.m, sim.d
-  collider = sf.install(sim.mjm, m, sf.Options(max_collision_pairs=1))
+  collider = sf.install(sim.mjm, m, sf.Options(broadphase=broadphase, max_collision_pairs=1))
   st = collider.state(m, d)
   checks = []
   for name in ("slot_pair", "slot_pairid", "pair", "pairid", "pair_worldid"):
@@ -429,7 +430,8 @@ def test_pair_overflow_through_step_is_flagged_once_and_bounded(capfd):
   assert all(ok() for ok in checks) and np.all(np.isfinite(d.qpos.numpy()))
 
 
-def test_explicit_pair_overflow():
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+def test_explicit_pair_overflow(broadphase):
   """Three explicit <pair>s (all other collisions off) and a budget of one: two are dropped per
   world, counted and flagged; the kept one gets its contact."""
   cube = vertex_attr(cube_verts())
@@ -441,7 +443,7 @@ def test_explicit_pair_overflow():
   pairs = "".join(f'<pair geom1="b{i}" geom2="p{i}"/>' for i in range(3))
   sim = load(f'<mujoco><asset><mesh name="cube" vertex="{cube}"/></asset><worldbody>{bodies}</worldbody>'
              f"<contact>{pairs}</contact></mujoco>", nworld=2)
-  collider = sf.install(sim.mjm, sim.m, sf.Options(max_collision_pairs=1))
+  collider = sf.install(sim.mjm, sim.m, sf.Options(broadphase=broadphase, max_collision_pairs=1))
   quiet_overflow(sim.m)
   sf.collision(sim.m, sim.d)
   stats = collider.stats(sim.d)
@@ -625,14 +627,15 @@ def pair_set(geoms) -> set:
   return {tuple(sorted(int(x) for x in g)) for g in geoms}
 
 
-def test_sleeping_matches_mujoco_c():
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+def test_sleeping_matches_mujoco_c(broadphase):
   """Cubes a and c rest on the floor and fall asleep; cube b drops onto a and wakes it. Step by
   step, the awake bodies and the touching geom pairs are MuJoCo C's: sleeping bodies keep still
   without floor contacts, a woken body gets its contacts in the step it wakes, c sleeps on."""
   mjm = sleep_model(True, 1e-2)
   m = mjw.put_model(mjm)
   d = mjw.make_data(mjm)
-  sf.install(mjm, m)
+  sf.install(mjm, m, sf.Options(broadphase=broadphase))
   mjd = mujoco.MjData(mjm)
   a, c = mjm.body("a").id, mjm.body("c").id
   adr_c = free_qpos_adr(mjm, "c")

@@ -421,8 +421,6 @@ def nxn_kernel(static_key: tuple):
     # Model:
     geom_type: wp.array(dtype=int),
     geom_bodyid: wp.array(dtype=int),
-    geom_dataid: wp.array2d(dtype=int),
-    geom_size: wp.array2d(dtype=wp.vec3),
     geom_aabb: wp.array3d(dtype=wp.vec3),
     geom_rbound: wp.array2d(dtype=float),
     geom_margin: wp.array2d(dtype=float),
@@ -486,8 +484,7 @@ def nxn_kernel(static_key: tuple):
     out.pair[cid] = pair
     out.pairid[cid] = pairid
     out.pair_worldid[cid] = worldid
-    queue_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
-               geom_xpos_in, geom_xmat_in, pair, pairid[0], worldid, cid, queues)
+    queue_pair(geom_type, pair, cid, queues)
 
   return nxn_pairs
 
@@ -496,16 +493,6 @@ def nxn_kernel(static_key: tuple):
 def compact_pairs(
   # Model:
   geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
   # In:
   max_pairs: int,
   world_count: wp.array(dtype=int),
@@ -529,5 +516,4 @@ def compact_pairs(
   out.pair[cid] = pair
   out.pairid[cid] = pairid
   out.pair_worldid[cid] = worldid
-  queue_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
-             geom_xpos_in, geom_xmat_in, pair, pairid[0], worldid, cid, queues)
+  queue_pair(geom_type, pair, cid, queues)

@@ -276,7 +276,6 @@ class Collider:
     out.stock_worldid = st.stock_ctx.collision_worldid
     out.npair, out.pair, out.pairid, out.pair_worldid = st.npair, st.pair, st.pairid, st.pair_worldid
     q = st.queues
-    q.ms, q.support_mode = self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode]
     q.pair_queue_type, q.geom_nonconvex = self.pair_queue_type, self.geom_nonconvex
     q.gjk_all = int(self.options.narrowphase == "gjk")
     q.count, q.pair = st.queue_count, st.queue_pair
@@ -349,23 +348,18 @@ class Collider:
     )
     awake_prev_in = awake_prev if incremental else d.body_awake
     warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
-    queue_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-                   m.pair_gap]
-    if self.nxn:
-      wp.launch(
-        broadphase.nxn_kernel(key),
-        dim=(d.nworld, self.npair_filtered),
-        inputs=[m.geom_type, m.geom_bodyid, m.geom_dataid, m.geom_size, m.geom_aabb, m.geom_rbound, m.geom_margin,
-                m.geom_gap, m.pair_margin, m.pair_gap, m.nxn_geom_pair_filtered, m.nxn_pairid_filtered, d.geom_xpos,
-                d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo, st.aabb_hi,
-                self.max_pairs, warn],
-        outputs=[st.pair_outputs, st.queues],
-      )
-      return
     common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
                     m.pair_gap]
     common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo,
                    st.aabb_hi]
+    if self.nxn:
+      wp.launch(
+        broadphase.nxn_kernel(key),
+        dim=(d.nworld, self.npair_filtered),
+        inputs=common_model + [m.nxn_geom_pair_filtered, m.nxn_pairid_filtered] + common_data + [self.max_pairs, warn],
+        outputs=[st.pair_outputs, st.queues],
+      )
+      return
     if self.ngeom > 1:
       wp.launch(broadphase.sort_endpoints, dim=d.nworld, inputs=[self.ngeom, self.options.sap_axis, st.aabb_lo],
                 outputs=[st.sap_init, st.order])
@@ -387,7 +381,7 @@ class Collider:
     wp.launch(
       broadphase.compact_pairs,
       dim=(d.nworld, self.max_pairs),
-      inputs=queue_model + [d.geom_xpos, d.geom_xmat, self.max_pairs, st.world_count, st.world_start],
+      inputs=[m.geom_type, self.max_pairs, st.world_count, st.world_start],
       outputs=[st.pair_outputs, st.queues],
     )
 
@@ -404,6 +398,15 @@ class Collider:
     nthread_analytic = max(1, min(nthread, d.naconmax))
     nthread_tilt = max(1, min(st.tilt_result.shape[0] * st.tilt_result.shape[1], _GRID_THREADS))
     gjk_all = self.options.narrowphase == "gjk"
+    if self.mpr_types and not gjk_all:
+      wp.launch(
+        narrowphase.sift_mpr_pairs,
+        dim=nthread,
+        inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode],
+                st.pair, st.pairid, st.pair_worldid, nthread],
+        outputs=[st.queues],
+      )
     if self.analytic_types:
       wp.launch(
         narrowphase.analytic_kernel(self.analytic_types),

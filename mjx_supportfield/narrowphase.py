@@ -44,7 +44,8 @@ NGEOMTYPE = len(GeomType)
 QUEUE_ANALYTIC = wp.constant(0)
 QUEUE_MPR = wp.constant(1)
 QUEUE_GJK = wp.constant(2)
-NQUEUE = 3
+QUEUE_CANDIDATE = wp.constant(3)  # MPR pairs not yet tested for being apart (sift_mpr_pairs)
+NQUEUE = 4
 WARM_BEHIND = 0.02  # least distance of a warm start point behind the origin, x the pair's scale
 
 
@@ -356,8 +357,6 @@ class PairQueues:
   QUEUE_MPR, else -1 (the heightfield and non-convex kernels, and stock MuJoCo Warp, walk the
   whole list)."""
 
-  ms: MeshSupport
-  support_mode: int
   pair_queue_type: wp.array(dtype=int)
   geom_nonconvex: wp.array(dtype=int)
   gjk_all: int  # narrowphase="gjk": every convex non-analytic pair to GJK/EPA
@@ -366,7 +365,35 @@ class PairQueues:
 
 
 @wp.func
-def queue_pair(
+def queue_pair(geom_type: wp.array(dtype=int), geoms: wp.vec2i, cid: int, queues: PairQueues):
+  """Queues pair ``cid`` of the list for its narrow-phase kernel, so the warps of each kernel
+  run only pairs of their own kind (in one pair list, a pile's mesh-plane pairs sat idle in the
+  MPR kernel's warps, between the mesh-mesh pairs).
+
+  A convex pair with a sphere or capsule goes to GJK (a point or segment core grown by a
+  radius: GJK gives the exact nearest points, where MPR's normal drifts for a small sphere sunk
+  deep), as do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py. The other
+  MPR pairs wait in QUEUE_CANDIDATE for sift_mpr_pairs. Cheap on purpose: the broad-phase
+  kernels that call it run a thread per (world, pair), and support queries here made those
+  threads heavy (aloha_pot's nxn kernel: 2.8 ms at 8192 worlds).
+  """
+  type1 = geom_type[geoms[0]]
+  type2 = geom_type[geoms[1]]
+  queue = queues.pair_queue_type[type1 * wp.static(NGEOMTYPE) + type2]
+  if queue == QUEUE_MPR:
+    if queues.geom_nonconvex[geoms[0]] or queues.geom_nonconvex[geoms[1]]:
+      return
+    if queues.gjk_all != 0 or has_core(type1, type2):
+      queue = QUEUE_GJK
+    else:
+      queue = QUEUE_CANDIDATE
+  if queue >= 0:
+    slot = wp.atomic_add(queues.count, queue, 1)
+    queues.pair[queue, slot] = cid
+
+
+@wp.kernel(enable_backward=False)
+def sift_mpr_pairs(
   # Model:
   geom_type: wp.array(dtype=int),
   geom_dataid: wp.array2d(dtype=int),
@@ -380,39 +407,25 @@ def queue_pair(
   geom_xpos_in: wp.array2d(dtype=wp.vec3),
   geom_xmat_in: wp.array2d(dtype=wp.mat33),
   # In:
-  geoms: wp.vec2i,
-  pairid: int,
-  worldid: int,
-  cid: int,
+  ms: MeshSupport,
+  support_mode: int,
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  nthread: int,
   # Out:
   queues: PairQueues,
 ):
-  """Queues pair ``cid`` of the list for its narrow-phase kernel, so the warps of each kernel
-  run only pairs of their own kind (in one pair list, a pile's mesh-plane pairs sat idle in the
-  MPR kernel's warps, between the mesh-mesh pairs).
-
-  A convex pair with a sphere or capsule goes to GJK (a point or segment core grown by a
-  radius: GJK gives the exact nearest points, where MPR's normal drifts for a small sphere sunk
-  deep), as do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py.
-
-  An MPR pair that MPR's first step proves apart (two support points, apart_along_centres) is
-  not queued at all: in a pile most broad-phase pairs are such near misses, and in the MPR
-  kernel's warps their lanes idled beside the pairs that touch.
-  """
-  type1 = geom_type[geoms[0]]
-  type2 = geom_type[geoms[1]]
-  queue = queues.pair_queue_type[type1 * wp.static(NGEOMTYPE) + type2]
-  if queue == QUEUE_MPR:
-    if queues.geom_nonconvex[geoms[0]] or queues.geom_nonconvex[geoms[1]]:
-      return
-    if queues.gjk_all != 0 or has_core(type1, type2):
-      queue = QUEUE_GJK
-    elif _apart(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
-                geom_xpos_in, geom_xmat_in, queues.ms, queues.support_mode, geoms, pairid, worldid):
-      return
-  if queue >= 0:
-    slot = wp.atomic_add(queues.count, queue, 1)
-    queues.pair[queue, slot] = cid
+  """Moves the MPR pairs that MPR's first step does not prove apart (two support points,
+  apart_along_centres) from QUEUE_CANDIDATE to QUEUE_MPR: in a pile most broad-phase pairs are
+  such near misses, and in the MPR kernel's warps their lanes idled beside the pairs that touch."""
+  tid = wp.tid()
+  for i in range(tid, queues.count[QUEUE_CANDIDATE], nthread):
+    cid = queues.pair[QUEUE_CANDIDATE, i]
+    if not _apart(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
+                  geom_xpos_in, geom_xmat_in, ms, support_mode, pair_in[cid], pairid_in[cid][0], pair_worldid_in[cid]):
+      slot = wp.atomic_add(queues.count, QUEUE_MPR, 1)
+      queues.pair[QUEUE_MPR, slot] = cid
 
 
 @functools.lru_cache(maxsize=None)

@@ -6,10 +6,11 @@
 Per device: ``put_model`` and ``install`` under ``wp.ScopedDevice``. First a check that every
 device collides and steps on its own, from the same state in ``--check-nworld`` worlds: the
 plugin's contacts of one collision call, sorted (DeterminismType.CONTACTS), are bitwise equal
-to device 0's, and so is qpos after 10 steps with the contact and constraint orders fixed
-(CONTACTS | CONSTRAINT; not ATOMICS: its order-invariant reductions need Warp's
-deterministic launches, whose scratch buffers outgrow 2^31 entries on this scene, so qpos is
-compared to 1e-5 when bits differ). Then a Data of ``--nworld`` worlds per device, one step
+to device 0's; qpos after 10 steps, with the contact and constraint orders fixed (CONTACTS |
+CONSTRAINT), differs from device 0's by at most twice what two runs on device 0 differ by (not
+ATOMICS: its order-invariant reductions need Warp's deterministic launches, whose scratch
+buffers outgrow 2^31 entries on this scene, so the solver's float atomics make runs differ a
+little on any one device). Then a Data of ``--nworld`` worlds per device, one step
 captured in a CUDA graph, timed on device 0 alone and on all devices at once (launched from
 one thread, synchronised at the end): the aggregate world-steps per second.
 """
@@ -100,6 +101,7 @@ def main():
   mjd = bench.settled_state(mjm, 200)
   nconmax = int(1.5 * mjd.ncon) + 16
   ref = check(mjm, mjd, devices[0], args.check_nworld, nconmax)
+  run_to_run = float(np.max(np.abs(ref[1] - check(mjm, mjd, devices[0], args.check_nworld, nconmax)[1])))
   agreement = []
   for dev in devices[1:]:
     contacts, qpos = check(mjm, mjd, dev, args.check_nworld, nconmax)
@@ -110,7 +112,8 @@ def main():
       "qpos_bitwise_equal": bool(np.array_equal(ref[1], qpos)),
       "qpos_max_abs_diff": float(np.max(np.abs(ref[1] - qpos))),
     })
-  same = [a["contacts"] > 0 and a["contacts_bitwise_equal"] and a["qpos_max_abs_diff"] <= 1e-5 for a in agreement]
+  same = [a["contacts"] > 0 and a["contacts_bitwise_equal"] and a["qpos_max_abs_diff"] <= 2.0 * run_to_run + 1e-6
+          for a in agreement]
   sims = [setup(mjm, mjd, dev, args.nworld, nconmax) for dev in devices]
 
   one = time_launches([(devices[0], sims[0][2])], args.launches)
@@ -118,7 +121,8 @@ def main():
   single = args.nworld * args.launches / one
   aggregate = len(devices) * args.nworld * args.launches / both
   report = {"gpus": [dev.name for dev in devices], "scene": os.path.basename(args.scene), "nworld_per_gpu": args.nworld,
-            "launches": args.launches, "check_nworld": args.check_nworld, "agreement_with_device0": agreement,
+            "launches": args.launches, "check_nworld": args.check_nworld, "qpos_run_to_run_device0": run_to_run,
+            "agreement_with_device0": agreement,
             "devices_match_device0": same, "step_ms_one_gpu": one / args.launches * 1e3,
             "step_ms_all_gpus": both / args.launches * 1e3, "world_steps_per_s_one_gpu": single,
             "world_steps_per_s_all_gpus": aggregate, "scaling": aggregate / single,

@@ -27,6 +27,14 @@ from mjx_supportfield.install import install
 from mjx_supportfield.options import Options
 
 
+def _value(text: str):
+  """An Options value from the command line: a Python literal, else the text itself (broadphase=sap)."""
+  try:
+    return ast.literal_eval(text)
+  except (ValueError, SyntaxError):
+    return text
+
+
 def main():
   p = argparse.ArgumentParser()
   p.add_argument("model")
@@ -46,7 +54,7 @@ def main():
     m = mjw.put_model(mjm)
     if impl != "stock":
       fields = dict(kv.split("=", 1) for kv in impl.split(";") if kv != "default")
-      install(mjm, m, Options(**{k: ast.literal_eval(v) for k, v in fields.items()}))
+      install(mjm, m, Options(**{k: _value(v) for k, v in fields.items()}))
     d = mjw.put_data(mjm, mjd, nworld=args.nworld, nconmax=ncon, njmax=6 * ncon + mjd.nefc)
     if args.steps:
       mjw.forward(m, d)

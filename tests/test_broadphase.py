@@ -7,6 +7,8 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
 import mjx_supportfield as sf
+from mjx_supportfield import narrowphase as nph
+from conftest import contacts
 from conftest import load
 from conftest import random_quat
 from conftest import set_qpos
@@ -258,4 +260,51 @@ def test_nonfinite_pose_skips_geom_in_its_world_only(broadphase):
   assert sorted(after[0]) == sorted(before[0])
   assert not any(mesh0 in p for p in after[1])
   assert set(after[1]) == {p for p in before[1] if mesh0 not in p}
+  sf.uninstall(sim.m)
+
+
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+@pytest.mark.parametrize("scene", ["primitives_plane", "convex_pile"])
+def test_queues_deal_out_the_pair_list(scene, broadphase):
+  """Each listed pair lands in its narrow-phase kernel's queue (analytic types, a sphere or
+  capsule to GJK, other convex pairs to the MPR candidates), and sift_mpr_pairs keeps in the MPR
+  queue every candidate but those without a contact."""
+
+  rng = np.random.default_rng(5)
+  sim = load(scene, nworld=NWORLD)
+  collider = sf.install(sim.mjm, sim.m, sf.Options(broadphase=broadphase))
+  qpos = np.stack([perturbed_qpos(sim.mjm, rng, 0.01, 0.2) for _ in range(NWORLD)])
+  set_qpos(sim, qpos)
+  sf.collision(sim.m, sim.d)
+  st = collider.state(sim.m, sim.d)
+  npair = int(st.npair.numpy()[0])
+  pair, worldid = st.pair.numpy()[:npair], st.pair_worldid.numpy()[:npair]
+  count, queued = st.queue_count.numpy(), st.queue_pair.numpy()
+  queue = {q: queued[q, : count[q]].tolist() for q in range(nph.NQUEUE)}
+  for q, cids in queue.items():
+    assert len(set(cids)) == len(cids) and all(0 <= c < npair for c in cids), f"queue {q}: {cids}"
+
+  core = (GeomType.SPHERE, GeomType.CAPSULE)
+  analytic = {tuple(sorted((int(a), int(b)))) for a, b in nph.ANALYTIC_PAIRS}
+  for cid, (g1, g2) in enumerate(pair):
+    t1, t2 = int(sim.mjm.geom_type[g1]), int(sim.mjm.geom_type[g2])
+    if tuple(sorted((t1, t2))) in analytic:
+      want = int(nph.QUEUE_ANALYTIC)
+    elif t1 in core or t2 in core:
+      want = int(nph.QUEUE_GJK)
+    else:
+      want = int(nph.QUEUE_CANDIDATE)
+    got = [q for q in (nph.QUEUE_ANALYTIC, nph.QUEUE_GJK, nph.QUEUE_CANDIDATE) if cid in queue[int(q)]]
+    assert got == [want], f"pair {cid} ({g1}, {g2}), types {t1} {t2}: queues {got}, expected {want}"
+
+  mpr, candidates = set(queue[int(nph.QUEUE_MPR)]), set(queue[int(nph.QUEUE_CANDIDATE)])
+  assert mpr and mpr <= candidates, f"MPR queue {sorted(mpr)} is empty or not among the candidates"
+  touching = set()  # by the plugin or by MuJoCo C
+  for w in range(NWORLD):
+    touching |= {(w, *sorted(int(x) for x in g)) for g in contacts(sim.d, w).geom}
+    touching |= {(w, *p) for p in mjc_pairs(sim.mjm, qpos[w])}
+  assert any((int(worldid[c]), *sorted(int(x) for x in pair[c])) in touching for c in mpr)
+  for cid in candidates - mpr:
+    key = (int(worldid[cid]), *sorted(int(x) for x in pair[cid]))
+    assert key not in touching, f"pair {key} was sifted out as apart, yet touches"
   sf.uninstall(sim.m)

@@ -286,7 +286,7 @@ def sweep_kernel(static_key: tuple, axis: int):
       g2 = wp.max(ga, gb)
       pairid = nxn_pairid[upper_tri_index(ngeom, g1, g2)]
       if pairid[0] == -2 or pairid[0] >= 0 or pairid[1] >= 0:
-        continue  # filtered out, or an explicit/sensor pair (tested by explicit_pairs)
+        continue  # filtered out, or an explicit/sensor pair (tested by listed_pairs)
       if not pair_test(
         geom_bodyid,
         geom_aabb,
@@ -322,81 +322,6 @@ def sweep_kernel(static_key: tuple, axis: int):
   return sweep
 
 
-@functools.lru_cache(maxsize=None)
-def explicit_kernel(static_key: tuple):
-  """Explicit <pair>s and collision-sensor pairs, one thread per (world, pair)."""
-  pair_test = _pair_test(*static_key)
-
-  @wp.kernel(module="unique", enable_backward=False)
-  def explicit_pairs(
-    # Model:
-    geom_type: wp.array(dtype=int),
-    geom_bodyid: wp.array(dtype=int),
-    geom_aabb: wp.array3d(dtype=wp.vec3),
-    geom_rbound: wp.array2d(dtype=float),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    # Data in:
-    geom_xpos_in: wp.array2d(dtype=wp.vec3),
-    geom_xmat_in: wp.array2d(dtype=wp.mat33),
-    body_awake_in: wp.array2d(dtype=int),
-    naconmax_in: int,
-    # In:
-    awake_prev_in: wp.array2d(dtype=int),
-    geom_stock: wp.array(dtype=int),
-    aabb_lo: wp.array2d(dtype=wp.vec3),
-    aabb_hi: wp.array2d(dtype=wp.vec3),
-    explicit_pair: wp.array(dtype=wp.vec2i),
-    explicit_pairid: wp.array(dtype=wp.vec2i),
-    max_pairs: int,
-    warn: bool,
-    # Out:
-    out: PairOutputs,
-  ):
-    worldid, k = wp.tid()
-    geoms = explicit_pair[k]
-    g1 = geoms[0]
-    g2 = geoms[1]
-    if _empty(aabb_lo, aabb_hi, worldid, g1) or _empty(aabb_lo, aabb_hi, worldid, g2):
-      return
-    pairid = explicit_pairid[k]
-    if not pair_test(
-      geom_bodyid,
-      geom_aabb,
-      geom_rbound,
-      geom_margin,
-      geom_gap,
-      pair_margin,
-      pair_gap,
-      geom_xpos_in,
-      geom_xmat_in,
-      body_awake_in,
-      awake_prev_in,
-      g1,
-      g2,
-      pairid,
-      worldid,
-    ):
-      return
-    _emit(
-      g1,
-      g2,
-      geom_type[g1],
-      geom_type[g2],
-      pairid,
-      worldid,
-      geom_stock[g1] != 0 or geom_stock[g2] != 0 or pairid[1] >= 0,
-      max_pairs,
-      naconmax_in,
-      warn,
-      out,
-    )
-
-  return explicit_pairs
-
-
 @wp.kernel
 def clamp_counts(max_pairs: int, world_npair: wp.array(dtype=int), world_count_out: wp.array(dtype=int)):
   """Pairs kept per world (the counter also counts the dropped ones)."""
@@ -405,19 +330,23 @@ def clamp_counts(max_pairs: int, world_npair: wp.array(dtype=int), world_count_o
 
 
 @functools.lru_cache(maxsize=None)
-def nxn_kernel(static_key: tuple):
-  """Every pair the model's static filters keep (``m.nxn_geom_pair_filtered``), one thread per
-  (world, pair): boxes, sleep rules and bounding filters as in the sweep (explicit and sensor
-  pairs as in explicit_pairs); a kept pair goes straight to the pair list and its narrow-phase
-  queue. For a model with few pairs this one launch replaces the sort, the sweep, the count,
-  the scan and the compaction.
+def listed_pairs_kernel(static_key: tuple, direct: bool):
+  """Pairs given as a list, one thread per (world, pair): boxes (not for explicit ``<pair>``s and
+  sensor pairs, which bring their own margins to the bounding filter), sleep rules and bounding
+  filters as in the sweep.
+
+  ``direct`` (nxn): the list is every pair MuJoCo's static filters keep
+  (``m.nxn_geom_pair_filtered``), and a kept pair goes straight to the pair list and its
+  narrow-phase queue; for a model with few pairs this one launch replaces the sort, the sweep,
+  the count, the scan and the compaction. Otherwise the list holds the explicit and sensor pairs
+  the sweep leaves out, and they go to the per-world slots, as the sweep's do.
 
   static_key = the _pair_test parameters.
   """
   pair_test = _pair_test(*static_key)
 
   @wp.kernel(module="unique", enable_backward=False)
-  def nxn_pairs(
+  def listed_pairs(
     # Model:
     geom_type: wp.array(dtype=int),
     geom_bodyid: wp.array(dtype=int),
@@ -427,8 +356,6 @@ def nxn_kernel(static_key: tuple):
     geom_gap: wp.array2d(dtype=float),
     pair_margin: wp.array2d(dtype=float),
     pair_gap: wp.array2d(dtype=float),
-    nxn_geom_pair: wp.array(dtype=wp.vec2i),
-    nxn_pairid: wp.array(dtype=wp.vec2i),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -439,6 +366,8 @@ def nxn_kernel(static_key: tuple):
     geom_stock: wp.array(dtype=int),
     aabb_lo: wp.array2d(dtype=wp.vec3),
     aabb_hi: wp.array2d(dtype=wp.vec3),
+    listed_pair: wp.array(dtype=wp.vec2i),
+    listed_pairid: wp.array(dtype=wp.vec2i),
     max_pairs: int,
     warn: bool,
     # Out:
@@ -446,13 +375,12 @@ def nxn_kernel(static_key: tuple):
     queues: PairQueues,
   ):
     worldid, k = wp.tid()
-    geoms = nxn_geom_pair[k]
+    geoms = listed_pair[k]
     g1 = geoms[0]
     g2 = geoms[1]
     if _empty(aabb_lo, aabb_hi, worldid, g1) or _empty(aabb_lo, aabb_hi, worldid, g2):
       return
-    pairid = nxn_pairid[k]
-    # explicit <pair>s bring their own margins: the bounding filter tests them, not the boxes
+    pairid = listed_pairid[k]
     swept = pairid[0] < 0 and pairid[1] < 0
     if swept and not _overlap(aabb_lo[worldid, g1], aabb_hi[worldid, g1], aabb_lo[worldid, g2], aabb_hi[worldid, g2]):
       return
@@ -474,8 +402,12 @@ def nxn_kernel(static_key: tuple):
       worldid,
     ):
       return
+    to_stock = geom_stock[g1] != 0 or geom_stock[g2] != 0 or pairid[1] >= 0
+    if not wp.static(direct):
+      _emit(g1, g2, geom_type[g1], geom_type[g2], pairid, worldid, to_stock, max_pairs, naconmax_in, warn, out)
+      return
     pair = _ordered(g1, g2, geom_type[g1], geom_type[g2])
-    if geom_stock[g1] != 0 or geom_stock[g2] != 0 or pairid[1] >= 0:
+    if to_stock:
       _emit_stock(pair, pairid, worldid, naconmax_in, out)
       return
     if _claim(worldid, max_pairs, warn, out) < 0:
@@ -486,7 +418,7 @@ def nxn_kernel(static_key: tuple):
     out.pair_worldid[cid] = worldid
     queue_pair(geom_type, pair, cid, queues)
 
-  return nxn_pairs
+  return listed_pairs
 
 
 @wp.kernel(enable_backward=False)

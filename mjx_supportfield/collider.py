@@ -352,13 +352,17 @@ class Collider:
                     m.pair_gap]
     common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, st.aabb_lo,
                    st.aabb_hi]
-    if self.nxn:
+
+    def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
       wp.launch(
-        broadphase.nxn_kernel(key),
-        dim=(d.nworld, self.npair_filtered),
-        inputs=common_model + [m.nxn_geom_pair_filtered, m.nxn_pairid_filtered] + common_data + [self.max_pairs, warn],
+        broadphase.listed_pairs_kernel(key, direct),
+        dim=(d.nworld, npair),
+        inputs=common_model + common_data + [pairs, pairids, self.max_pairs, warn],
         outputs=[st.pair_outputs, st.queues],
       )
+
+    if self.nxn:
+      listed(True, m.nxn_geom_pair_filtered, m.nxn_pairid_filtered, self.npair_filtered)
       return
     if self.ngeom > 1:
       wp.launch(broadphase.sort_endpoints, dim=d.nworld, inputs=[self.ngeom, self.options.sap_axis, st.aabb_lo],
@@ -370,12 +374,7 @@ class Collider:
         outputs=[st.pair_outputs],
       )
     if self.nexplicit:
-      wp.launch(
-        broadphase.explicit_kernel(key),
-        dim=(d.nworld, self.nexplicit),
-        inputs=common_model + common_data + [self.explicit_pair, self.explicit_pairid, self.max_pairs, warn],
-        outputs=[st.pair_outputs],
-      )
+      listed(False, self.explicit_pair, self.explicit_pairid, self.nexplicit)
     wp.launch(broadphase.clamp_counts, dim=d.nworld, inputs=[self.max_pairs, st.world_npair], outputs=[st.world_count])
     wp.utils.array_scan(st.world_count, st.world_start, inclusive=False)
     wp.launch(

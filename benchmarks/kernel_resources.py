@@ -1,4 +1,4 @@
-"""Registers and stack per thread of the narrow-phase kernels, without a GPU.
+"""Registers and stack per thread of the broad- and narrow-phase kernels, without a GPU.
 
   python benchmarks/kernel_resources.py [--arch 90] [--ptxas PATH] [--out FILE]
 
@@ -18,15 +18,22 @@ import tempfile
 
 import warp as wp
 
+from mjx_supportfield import broadphase
 from mjx_supportfield import narrowphase
 
+# broad-phase kernels are built per model; this key is a model without per-world sizes or sleep
+_KEY = (0, 1, 1, 1, 1, 1, 1, False, False)
+
 ENTRY = re.compile(r"Compiling entry function '([^']+)'")
-USAGE = re.compile(r"Used (\d+) registers.*?(\d+) bytes cumulative stack size")
+USAGE = re.compile(r"Used (\d+) registers(?:.*?(\d+) bytes cumulative stack size)?")
 
 
 def kernels() -> dict:
   """The kernels to report: name -> Warp kernel."""
   return {
+    "listed pairs (nxn)": broadphase.listed_pairs_kernel(_KEY, True),
+    "compact pairs (SAP)": broadphase.compact_pairs,
+    "sift MPR pairs": narrowphase.sift_mpr_pairs,
     "convex (MPR)": narrowphase.convex_kernel(False),
     "convex (GJK/EPA)": narrowphase.convex_kernel(True),
     "tilt (multi-contact)": narrowphase.tilt_kernel,
@@ -50,7 +57,7 @@ def resources(kernel, arch: int, ptxas: str, workdir: str) -> tuple[int, int]:
       if m := ENTRY.search(line):
         entry = m.group(1)
       elif (m := USAGE.search(line)) and entry and entry.startswith(name) and entry.endswith("forward"):
-        return int(m.group(1)), int(m.group(2))
+        return int(m.group(1)), int(m.group(2) or 0)  # no stack line: a kernel without calls
   raise RuntimeError(f"ptxas reported nothing for {name}")
 
 

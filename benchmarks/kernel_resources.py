@@ -1,6 +1,6 @@
 """Registers and stack per thread of the broad- and narrow-phase kernels, without a GPU.
 
-  python benchmarks/kernel_resources.py [--arch 90] [--ptxas PATH] [--out FILE]
+  python benchmarks/kernel_resources.py [--arch 90] [--ptxas PATH] [--out FILE] [--max-registers N]
 
 Warp writes each kernel module's PTX for the given architecture (``wp.compile_aot_module``);
 ``ptxas -v`` then reports what the GPU would run. A kernel at the 255-register cap spills to
@@ -66,12 +66,16 @@ def main():
   p.add_argument("--arch", type=int, default=90, help="SM architecture (90: H100 / H200)")
   p.add_argument("--ptxas", default="ptxas", help="ptxas of CUDA 13.4 or later")
   p.add_argument("--out", help="also write the table to this file")
+  p.add_argument("--max-registers", type=int, help="rebuild each kernel with this register cap (cuda_max_registers)")
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
   wp.init()
-  lines = [f"sm_{args.arch}, warp {wp.__version__}", f"{'kernel':24s} {'registers':>9s} {'stack B':>8s}"]
+  cap = f", at most {args.max_registers} registers" if args.max_registers else ""
+  lines = [f"sm_{args.arch}, warp {wp.__version__}{cap}", f"{'kernel':24s} {'registers':>9s} {'stack B':>8s}"]
   with tempfile.TemporaryDirectory() as workdir:
     for label, kernel in kernels().items():
+      if args.max_registers:
+        kernel = wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=args.max_registers)
       regs, stack = resources(kernel, args.arch, args.ptxas, workdir)
       lines.append(f"{label:24s} {regs:9d} {stack:8d}")
   text = "\n".join(lines)

@@ -10,18 +10,22 @@ counted as collision when a collision call launches it, and the step's other ker
 reported as the rest (solver, kinematics, ...), with the mean solver iterations.
 
 A variant is ``default`` or Options fields as ``key=value;key=value`` (Python literals), e.g.
-``multi_contact=False;mpr_refine=0``.
+``multi_contact=False;mpr_refine=0``. One more key, ``max_registers=N``, rebuilds the MPR, GJK,
+tilt and patch kernels with at most N registers a thread (Warp's ``cuda_max_registers``; they
+sit at the 255 cap, which leaves 8 warps an SM) for that variant.
 """
 
-import ast
-
 import argparse
+import ast
 import collections
+import contextlib
+import functools
 
 import mujoco
 import mujoco_warp as mjw
 import warp as wp
 
+from mjx_supportfield import narrowphase
 from mjx_supportfield.bench import settled_state
 from mjx_supportfield.install import install
 from mjx_supportfield.options import Options
@@ -33,6 +37,29 @@ def _value(text: str):
     return ast.literal_eval(text)
   except (ValueError, SyntaxError):
     return text
+
+
+@contextlib.contextmanager
+def _register_cap(cap):
+  """Within the block, the narrow phase's heavy kernels are rebuilt with at most ``cap``
+  registers a thread (None: unchanged)."""
+  if cap is None:
+    yield
+    return
+  names = ("convex_kernel", "tilt_kernel", "patch_kernel")
+  saved = {name: getattr(narrowphase, name) for name in names}
+
+  def capped(kernel):
+    return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
+
+  narrowphase.convex_kernel = functools.lru_cache(maxsize=None)(lambda use_gjk: capped(saved["convex_kernel"](use_gjk)))
+  narrowphase.tilt_kernel = capped(saved["tilt_kernel"])
+  narrowphase.patch_kernel = capped(saved["patch_kernel"])
+  try:
+    yield
+  finally:
+    for name, kernel in saved.items():
+      setattr(narrowphase, name, kernel)
 
 
 def main():
@@ -51,32 +78,39 @@ def main():
   mjd = settled_state(mjm, args.settle)
   ncon = int(1.5 * mjd.ncon) + 16
   for impl in ([] if args.no_stock else ["stock"]) + args.variants.split(","):
-    m = mjw.put_model(mjm)
-    if impl != "stock":
-      fields = dict(kv.split("=", 1) for kv in impl.split(";") if kv != "default")
-      install(mjm, m, Options(**{k: _value(v) for k, v in fields.items()}))
-    d = mjw.put_data(mjm, mjd, nworld=args.nworld, nconmax=ncon, njmax=6 * ncon + mjd.nefc)
-    if args.steps:
-      mjw.forward(m, d)
-    # (a frozen state keeps MuJoCo C's kinematics from put_data: only the collision kernels compile)
-    mjw.collision(m, d)
-    wp.synchronize()
-    collision_ms = _profile(lambda: mjw.collision(m, d), args.repeats)
-    if not args.steps:
-      _report(f"{impl}: collision on one frozen state", collision_ms, args.nworld, args.top)
-      continue
-    niter = []
+    fields = dict(kv.split("=", 1) for kv in impl.split(";") if kv not in ("default", "stock"))
+    cap = fields.pop("max_registers", None)
+    with _register_cap(None if cap is None else int(cap)):
+      _profile_variant(args, mjm, mjd, ncon, impl, fields)
 
-    def step():
-      mjw.step(m, d)
-      niter.append(float(d.solver_niter.numpy().mean()))  # the sync costs no GPU time
 
-    step_ms = _profile(step, args.steps)
-    in_collision = {k: v for k, v in step_ms.items() if k in collision_ms}
-    rest = {k: v for k, v in step_ms.items() if k not in collision_ms}
-    iters = sum(niter) / len(niter)
-    _report(f"{impl}: collision inside {args.steps} steps", in_collision, args.nworld, args.top)
-    _report(f"{impl}: rest of the step (mean solver iterations {iters:.2f})", rest, args.nworld, args.top)
+def _profile_variant(args, mjm, mjd, ncon: int, impl: str, fields: dict):
+  """Profiles one implementation: stock, or the plugin with the given Options fields."""
+  m = mjw.put_model(mjm)
+  if impl != "stock":
+    install(mjm, m, Options(**{k: _value(v) for k, v in fields.items()}))
+  d = mjw.put_data(mjm, mjd, nworld=args.nworld, nconmax=ncon, njmax=6 * ncon + mjd.nefc)
+  if args.steps:
+    mjw.forward(m, d)
+  # (a frozen state keeps MuJoCo C's kinematics from put_data: only the collision kernels compile)
+  mjw.collision(m, d)
+  wp.synchronize()
+  collision_ms = _profile(lambda: mjw.collision(m, d), args.repeats)
+  if not args.steps:
+    _report(f"{impl}: collision on one frozen state", collision_ms, args.nworld, args.top)
+    return
+  niter = []
+
+  def step():
+    mjw.step(m, d)
+    niter.append(float(d.solver_niter.numpy().mean()))  # the sync costs no GPU time
+
+  step_ms = _profile(step, args.steps)
+  in_collision = {k: v for k, v in step_ms.items() if k in collision_ms}
+  rest = {k: v for k, v in step_ms.items() if k not in collision_ms}
+  iters = sum(niter) / len(niter)
+  _report(f"{impl}: collision inside {args.steps} steps", in_collision, args.nworld, args.top)
+  _report(f"{impl}: rest of the step (mean solver iterations {iters:.2f})", rest, args.nworld, args.top)
 
 
 def _profile(fn, repeats: int) -> dict:

@@ -51,7 +51,7 @@ class DataState:
   npair: wp.array
   ndropped: wp.array
   nwarned: wp.array
-  slot_pair: wp.array  # per-world slots written by the sweep
+  slot_pair: wp.array  # per-world slots written by the sweep (a placeholder with nxn)
   slot_pairid: wp.array
   world_count: wp.array
   world_start: wp.array
@@ -233,6 +233,8 @@ class Collider:
   def _make_state(self, d) -> DataState:
     nworld = d.nworld
     capacity = nworld * self.max_pairs
+    # the sweep's per-world slots; nxn lists pairs directly (aloha_pot: 2 x 268 MB saved at 8192 worlds)
+    nslot = 1 if self.nxn else capacity
     with wp.ScopedDevice(self.device):
       st = DataState(
         aabb_lo=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
@@ -244,8 +246,8 @@ class Collider:
         npair=wp.zeros(1, dtype=int),
         ndropped=wp.zeros(nworld, dtype=int),
         nwarned=wp.zeros(1, dtype=int),
-        slot_pair=wp.zeros(capacity, dtype=wp.vec2i),
-        slot_pairid=wp.zeros(capacity, dtype=wp.vec2i),
+        slot_pair=wp.zeros(nslot, dtype=wp.vec2i),
+        slot_pairid=wp.zeros(nslot, dtype=wp.vec2i),
         world_count=wp.zeros(nworld, dtype=int),
         world_start=wp.zeros(nworld, dtype=int),
         pair=wp.zeros(capacity, dtype=wp.vec2i),

@@ -36,7 +36,8 @@ def kernels() -> dict:
     "sift MPR pairs": narrowphase.sift_mpr_pairs,
     "convex (MPR)": narrowphase.convex_kernel(False),
     "convex (GJK/EPA)": narrowphase.convex_kernel(True),
-    "tilt (multi-contact)": narrowphase.tilt_kernel,
+    "tilt (closed form)": narrowphase.tilt_kernel,
+    "tilt (MPR)": narrowphase.tilt_mpr_kernel,
     "patch (multi-contact)": narrowphase.patch_kernel,
   }
 

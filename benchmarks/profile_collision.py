@@ -46,7 +46,7 @@ def _register_cap(cap):
   if cap is None:
     yield
     return
-  names = ("convex_kernel", "tilt_kernel", "patch_kernel")
+  names = ("convex_kernel", "tilt_kernel", "tilt_mpr_kernel", "patch_kernel")
   saved = {name: getattr(narrowphase, name) for name in names}
 
   def capped(kernel):
@@ -54,6 +54,7 @@ def _register_cap(cap):
 
   narrowphase.convex_kernel = functools.lru_cache(maxsize=None)(lambda use_gjk: capped(saved["convex_kernel"](use_gjk)))
   narrowphase.tilt_kernel = capped(saved["tilt_kernel"])
+  narrowphase.tilt_mpr_kernel = capped(saved["tilt_mpr_kernel"])
   narrowphase.patch_kernel = capped(saved["patch_kernel"])
   try:
     yield

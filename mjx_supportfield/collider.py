@@ -68,7 +68,9 @@ class DataState:
   patch_pair: wp.array
   patch_result: wp.array
   patch_pos: wp.array
-  tilt_result: wp.array  # (queued pairs, 8) the tilts' MPRs, both attempts
+  tilt_result: wp.array  # (queued pairs, 8) the tilts' points, both attempts
+  tilt_count: wp.array  # tilts queued for MPR (narrowphase.tilt_mpr_kernel)
+  tilt_queue: wp.array  # their flat indices into tilt_result
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the broad phase
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
@@ -102,6 +104,7 @@ def start_collision(
   nwarned: wp.array(dtype=int),
   queue_count: wp.array(dtype=int),
   patch_count: wp.array(dtype=int),
+  tilt_count: wp.array(dtype=int),
   warm_stamp: wp.array(dtype=int),
   warm_misses: wp.array(dtype=int),
 ):
@@ -119,6 +122,7 @@ def start_collision(
   npair[0] = 0
   nwarned[0] = 0
   patch_count[0] = 0
+  tilt_count[0] = 0
   for q in range(queue_count.shape[0]):
     queue_count[q] = 0
   if not incremental:
@@ -235,6 +239,7 @@ class Collider:
     capacity = nworld * self.max_pairs
     # the sweep's per-world slots; nxn lists pairs directly (aloha_pot: 2 x 268 MB saved at 8192 worlds)
     nslot = 1 if self.nxn else capacity
+    ntilt_pair = min(capacity, nworld * _TILT_PAIRS_PER_WORLD)
     with wp.ScopedDevice(self.device):
       st = DataState(
         aabb_lo=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
@@ -266,7 +271,9 @@ class Collider:
         patch_pair=wp.zeros(capacity, dtype=int),
         patch_result=wp.zeros(capacity, dtype=wp.vec4),
         patch_pos=wp.zeros(capacity, dtype=wp.vec3),
-        tilt_result=wp.zeros((min(capacity, nworld * _TILT_PAIRS_PER_WORLD), 2 * narrowphase.NPERTURB), dtype=wp.vec4),
+        tilt_result=wp.zeros((ntilt_pair, 2 * narrowphase.NPERTURB), dtype=wp.vec4),
+        tilt_count=wp.zeros(1, dtype=int),
+        tilt_queue=wp.zeros(ntilt_pair * 2 * narrowphase.NPERTURB, dtype=int),
         pair_outputs=broadphase.PairOutputs(),
         queues=narrowphase.PairQueues(),
       )
@@ -305,7 +312,7 @@ class Collider:
       dim=d.nworld,
       inputs=[incremental, warm],
       outputs=[d.ncollision, d.nacon, st.ndropped, st.nonfinite, st.world_npair, st.npair, st.nwarned, st.queue_count,
-               st.patch_count, st.warm.stamp, st.warm.misses],
+               st.patch_count, st.tilt_count, st.warm.stamp, st.warm.misses],
     )
 
     self._broadphase(m, d, st, awake_prev)
@@ -444,16 +451,21 @@ class Collider:
           ] + queue_inputs + [nthread],
           outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
         )
+      tilt_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                    m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode]]
       wp.launch(
         narrowphase.tilt_kernel,
         dim=nthread_tilt,
-        inputs=[
-          m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-          m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode],
-          self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mc_perturbation, st.pair, st.pairid,
-          st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos,
-          nthread_tilt,
-        ],
+        inputs=tilt_model + [self.options.mc_perturbation, st.pair, st.pairid, st.pair_worldid, st.patch_count,
+                             st.patch_pair, st.patch_result, st.patch_pos, nthread_tilt],
+        outputs=[st.tilt_result, st.tilt_count, st.tilt_queue],
+      )
+      wp.launch(
+        narrowphase.tilt_mpr_kernel,
+        dim=nthread_tilt,
+        inputs=tilt_model + [self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mc_perturbation,
+                             st.pair, st.pairid, st.pair_worldid, st.patch_pair, st.patch_result, st.patch_pos,
+                             st.tilt_count, st.tilt_queue, nthread_tilt],
         outputs=[st.tilt_result],
       )
       wp.launch(

@@ -7,6 +7,13 @@ point is kept when it still penetrates along n and is not a duplicate of one alr
 A tilt that lands back on a point already found (the faces meet at a larger angle than eps,
 so the same vertex stays deepest) is retried once, TILT_GROWTH times steeper: 0.09 rad at the
 default eps, about the 0.089 rad within which MuJoCo's multi-CCD takes two faces as touching.
+
+Most tilts need no MPR. The tilted MPR looks along n, and the face of A' - B its ray leaves
+through is usually a vertex of one shape against a flat face of the other (a box face, a
+cylinder's end, a hull polygon of MuJoCo's): A''s vertex through B's face that faces A, or B's
+vertex through A''s face that faces B. A face and a support query give each, and where the
+ray provably leaves through one of them the tilt's answer follows in closed form
+(tilt_closed_form); only the rest (edge against edge, curved sides) run the tilted MPR.
 """
 
 import warp as wp
@@ -19,6 +26,7 @@ from mjx_supportfield.mpr import mpr
 from mjx_supportfield.support import count_supports
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import mesh_support_index
+from mjx_supportfield.support import support_world
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -31,6 +39,10 @@ TILT_TOL = 1.0e-6
 TILT_ITERATIONS = 16
 TILT_GROWTH = 9.0  # the retry's tilt, in units of eps
 MISSED = wp.constant(-1.0e30)  # depth of a tilt whose shapes do not overlap
+UNKNOWN = wp.constant(1.0e30)  # depth of a tilt the closed form cannot answer: MPR must
+# a closed-form point may lie this far (x the pair's scale) off the other shape's face: a
+# corner sitting on a face's edge is on the face up to float32 noise
+ON_FACE_TOL = 1.0e-5
 
 mat43 = wp.types.matrix(shape=(4, 3), dtype=float)
 
@@ -126,39 +138,197 @@ def _tilt_axis(normal: wp.vec3, k: int) -> wp.vec3:
 
 
 @wp.func
-def _tilted_point(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  axis: wp.vec3, angle: float
-) -> wp.vec4:
-  """MPR with A tilted by ``angle`` about ``axis`` through the first contact: the point (xyz)
-  and its depth along the first normal (w), A's witness point rotated back with A; depth
-  MISSED when the tilted shapes do not overlap."""
-  rot = wp.quat_to_matrix(wp.quat_from_axis_angle(axis, angle))
-  # every tilted MPR starts warm: looking along the first normal, from just behind the origin
-  q0 = behind_origin(first.normal, first.depth, scale)
-  r = mpr(_tilted(a, first.pos, rot), b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
-  if r.hit == 0:
-    return wp.vec4(0.0, 0.0, 0.0, MISSED)
-  # witness points in the tilted pose (pa - pb = depth * normal); A's rotates back with A
-  pa = r.pos + 0.5 * r.depth * r.normal
-  pb = r.pos - 0.5 * r.depth * r.normal
+def tilt_rotation(normal: wp.vec3, eps: float, k: int, attempt: int) -> wp.mat33:
+  """Rotation of tilt k (+-eps about a diagonal of the contact plane), attempt 0 or 1 (the
+  retry, TILT_GROWTH times steeper)."""
+  angle = float(wp.where(k % 2 == 0, eps, -eps))
+  if attempt == 1:
+    angle *= TILT_GROWTH
+  return wp.quat_to_matrix(wp.quat_from_axis_angle(_tilt_axis(normal, k), angle))
+
+
+@wp.func
+def _mapped_back(first: MprResult, rot: wp.mat33, pa: wp.vec3, pb: wp.vec3) -> wp.vec4:
+  """A tilt's answer from its witness points in the tilted pose: A's rotates back with A; the
+  midpoint (xyz) and the depth along the first normal (w)."""
   pa = first.pos + wp.transpose(rot) @ (pa - first.pos)
   pos = 0.5 * (pa + pb)
   return wp.vec4(pos[0], pos[1], pos[2], wp.dot(pa - pb, first.normal))
 
 
 @wp.func
-def tilt_attempt(
+def tilt_mpr(
   a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  eps: float, k: int, attempt: int
+  rot: wp.mat33
 ) -> wp.vec4:
-  """Attempt ``attempt`` (0, or 1: TILT_GROWTH times steeper) of tilt k (point, depth; see
-  _tilted_point), on its own: all eight of a pair can run in eight threads
-  (narrowphase.tilt_kernel) and be handed to perturbed_contacts."""
-  angle = float(wp.where(k % 2 == 0, eps, -eps))
-  if attempt == 1:
-    angle *= TILT_GROWTH
-  return _tilted_point(a, b, ms, mode, first, scale, tol, iterations, _tilt_axis(first.normal, k), angle)
+  """MPR with A tilted by ``rot`` about the first contact: the point (xyz) and its depth along
+  the first normal (w), A's witness point rotated back with A; depth MISSED when the tilted
+  shapes do not overlap."""
+  # every tilted MPR starts warm: looking along the first normal, from just behind the origin
+  q0 = behind_origin(first.normal, first.depth, scale)
+  r = mpr(_tilted(a, first.pos, rot), b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
+  if r.hit == 0:
+    return wp.vec4(0.0, 0.0, 0.0, MISSED)
+  # witness points in the tilted pose (pa - pb = depth * normal)
+  return _mapped_back(first, rot, r.pos + 0.5 * r.depth * r.normal, r.pos - 0.5 * r.depth * r.normal)
+
+
+@wp.func
+def _polygon_toward(ms: MeshSupport, mesh: int, vertex: int, u: wp.vec3) -> int:
+  """The hull polygon (global index) around hull vertex ``vertex`` whose normal is nearest to
+  direction u (mesh frame); -1 when the mesh has no polygons."""
+  g = ms.hull_adr[mesh] + vertex
+  best = int(-1)
+  best_dot = float(-2.0)
+  for k in range(ms.vert_poly_num[g]):
+    p = ms.poly_adr[mesh] + ms.vert_poly[ms.vert_poly_adr[g] + k]
+    c = wp.dot(ms.poly_normal[p], u)
+    if c > best_dot and ms.poly_vert_num[p] >= 3:
+      best = p
+      best_dot = c
+  return best
+
+
+@wp.func
+def _in_polygon(ms: MeshSupport, mesh: int, poly: int, x: wp.vec3, tol: float) -> bool:
+  """Whether point x (mesh frame, in the polygon's plane) lies inside hull polygon ``poly``,
+  up to tol."""
+  normal = ms.poly_normal[poly]
+  adr = ms.poly_vert_adr[poly]
+  nvert = ms.poly_vert_num[poly]
+  prev = hull_point(ms, mesh, ms.poly_vert[adr + nvert - 1])
+  # inside a convex polygon, x is on the same side of every edge, whatever the winding
+  left = bool(False)
+  right = bool(False)
+  for j in range(nvert):
+    cur = hull_point(ms, mesh, ms.poly_vert[adr + j])
+    e = cur - prev
+    side = wp.dot(wp.cross(e, x - prev), normal)
+    slack = tol * wp.length(e)
+    if side > slack:
+      left = True
+    if side < -slack:
+      right = True
+    prev = cur
+  return not (left and right)
+
+
+@wp.func
+def _face_toward(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> tuple[wp.vec3, wp.vec3, int]:
+  """The flat face of s whose outward normal is nearest to world direction u: its normal and a
+  point of its plane (world; grown by s.inflate) and an id for _in_face (a box face, a
+  cylinder's end, a mesh's hull polygon); id -1 when s has no flat face there."""
+  lu = wp.transpose(s.rot) @ u
+  normal = wp.vec3(0.0)
+  point = wp.vec3(0.0)
+  face = int(-1)
+  if s.gtype == GeomType.BOX:
+    k = int(0)
+    for i in range(1, 3):
+      if wp.abs(lu[i]) > wp.abs(lu[k]):
+        k = i
+    sign = wp.where(lu[k] >= 0.0, 1.0, -1.0)
+    normal[k] = sign
+    point[k] = sign * s.size[k]
+    face = 2 * k + wp.where(sign > 0.0, 1, 0)
+  elif s.gtype == GeomType.CYLINDER:
+    sign = wp.where(lu[2] >= 0.0, 1.0, -1.0)
+    normal = wp.vec3(0.0, 0.0, sign)
+    point = wp.vec3(0.0, 0.0, sign * s.size[1])
+    face = wp.where(sign > 0.0, 1, 0)
+  elif s.gtype == GeomType.MESH:
+    vertex = mesh_support_index(ms, s.mesh, lu, mode)
+    face = _polygon_toward(ms, s.mesh, vertex, lu)
+    if face >= 0:
+      normal = ms.poly_normal[face]
+      point = hull_point(ms, s.mesh, vertex)
+  normal = s.rot @ normal
+  return normal, s.pos + s.rot @ point + s.inflate * normal, face
+
+
+@wp.func
+def _in_face(s: Shape, ms: MeshSupport, face: int, x: wp.vec3, tol: float) -> bool:
+  """Whether world point x, in the plane of _face_toward's face ``face`` of s, lies on that face
+  (up to tol; the grown box or cylinder stands for s grown by s.inflate)."""
+  local = wp.transpose(s.rot) @ (x - s.pos)
+  grow = s.inflate + tol
+  if s.gtype == GeomType.BOX:
+    return (wp.abs(local[0]) <= s.size[0] + grow and wp.abs(local[1]) <= s.size[1] + grow
+            and wp.abs(local[2]) <= s.size[2] + grow)
+  if s.gtype == GeomType.CYLINDER:
+    return wp.length(wp.vec2(local[0], local[1])) <= s.size[0] + grow
+  if s.gtype == GeomType.MESH:
+    return _in_polygon(ms, s.mesh, face, local - s.inflate * ms.poly_normal[face], tol)
+  return False
+
+
+NO_FACE = wp.constant(0)
+OFF_FACE = wp.constant(1)
+EXIT_FACE = wp.constant(2)
+
+
+@wp.func
+def _vertex_on_face(v: Shape, f: Shape, ms: MeshSupport, mode: int, ray: wp.vec3, tol: float
+                    ) -> tuple[wp.vec3, wp.vec3, float, int]:
+  """A face of the Minkowski difference V - F seen by MPR's ray from the origin along ``ray``:
+  the flat face of ``f`` facing ``v`` (outward normal nearest to -ray) against the vertex of v
+  deepest through it. Returns that vertex, its foot on the face (MPR's two witness points when
+  the ray leaves V - F through this face), the depth (<= 0: V and F are apart) and NO_FACE
+  (f has no flat face there), OFF_FACE (the ray leaves through another face of V - F, or
+  MPR's witness would not be the foot) or EXIT_FACE.
+
+  The ray meets the face's plane at depth / cos; it leaves V - F there exactly when that point
+  of the plane lies on the face (a convex body's boundary meets the ray once)."""
+  normal, point, face = _face_toward(f, ms, -ray, mode)
+  if face < 0:
+    return wp.vec3(0.0), wp.vec3(0.0), 1.0, NO_FACE
+  m = -normal  # the outward normal of this face of V - F
+  vertex = support_world(v, ms, m, mode)
+  depth = wp.dot(vertex - point, m)
+  foot = vertex - depth * m
+  cos = wp.dot(ray, m)
+  status = OFF_FACE
+  if cos > 0.0 and _in_face(f, ms, face, vertex - depth / cos * ray, tol) and _in_face(f, ms, face, foot, tol):
+    status = EXIT_FACE
+  return vertex, foot, depth, status
+
+
+@wp.func
+def tilt_closed_form(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, rot: wp.mat33
+                     ) -> wp.vec4:
+  """tilt_mpr's answer without MPR where the tilted MPR's ray leaves A' - B (A' = A tilted by
+  ``rot`` about the first contact) through a vertex of one shape against a flat face of the
+  other; depth UNKNOWN where it does not (edge against edge, curved faces) or may not.
+
+  MPR's ray runs along the first normal n. Two faces of A' - B are tried: A''s vertex deepest
+  through B's face that faces A, and B's vertex deepest through A''s face that faces B (a
+  face of B - A', whose ray runs along -n). Either proves the shapes apart when its depth is
+  not positive, as MPR's own first step would.
+  """
+  at = _tilted(a, first.pos, rot)
+  n = first.normal
+  tol = ON_FACE_TOL * scale
+  va, foot_b, depth_a, status_a = _vertex_on_face(at, b, ms, mode, n, tol)
+  vb, foot_a, depth_b, status_b = _vertex_on_face(b, at, ms, mode, -n, tol)
+  if (status_a != NO_FACE and depth_a <= 0.0) or (status_b != NO_FACE and depth_b <= 0.0):
+    return wp.vec4(0.0, 0.0, 0.0, MISSED)
+  if status_a == EXIT_FACE:
+    return _mapped_back(first, rot, va, foot_b)
+  if status_b == EXIT_FACE:
+    return _mapped_back(first, rot, foot_a, vb)
+  return wp.vec4(0.0, 0.0, 0.0, UNKNOWN)
+
+
+@wp.func
+def tilt_point(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
+  rot: wp.mat33
+) -> wp.vec4:
+  """A tilt's point and depth (see tilt_mpr): in closed form where it can be, else by MPR."""
+  q = tilt_closed_form(a, b, ms, mode, first, scale, rot)
+  if q[3] == UNKNOWN:
+    q = tilt_mpr(a, b, ms, mode, first, scale, tol, iterations, rot)
+  return q
 
 
 @wp.func
@@ -168,21 +338,19 @@ def perturbed_contacts(
 ) -> Patch:
   """Up to NPERTURB further contact points of A and B around ``first`` (see the module doc).
 
-  With ``row`` >= 0, ``attempts[row, attempt * NPERTURB + k]`` holds tilt_attempt(k, attempt),
-  computed beforehand in parallel; with row < 0 the attempts are computed here, as needed.
+  With ``row`` >= 0, ``attempts[row, attempt * NPERTURB + k]`` holds tilt_point of that tilt
+  and attempt, computed beforehand in parallel; with row < 0 the attempts are computed here, as
+  needed.
   """
   patch = Patch()
   patch.n = 0
   for k in range(NPERTURB):
-    axis = _tilt_axis(first.normal, k)
-    angle = float(wp.where(k % 2 == 0, eps, -eps))
     for attempt in range(2):
       q = wp.vec4()
       if row >= 0:
         q = attempts[row, attempt * NPERTURB + k]
       else:
-        q = _tilted_point(a, b, ms, mode, first, scale, tol, iterations, axis, angle)
-      angle *= TILT_GROWTH
+        q = tilt_point(a, b, ms, mode, first, scale, tol, iterations, tilt_rotation(first.normal, eps, k, attempt))
       if q[3] == MISSED:
         break
       pos = wp.vec3(q[0], q[1], q[2])

@@ -23,13 +23,16 @@ from mjx_supportfield.mpr import apart_along_centres
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
-from mjx_supportfield.multicontact import TILT_GROWTH
 from mjx_supportfield.multicontact import NPERTURB
+from mjx_supportfield.multicontact import TILT_GROWTH
+from mjx_supportfield.multicontact import UNKNOWN
 from mjx_supportfield.multicontact import Patch
-from mjx_supportfield.multicontact import tilt_attempt
 from mjx_supportfield.multicontact import keep_first
 from mjx_supportfield.multicontact import patch_possible
 from mjx_supportfield.multicontact import perturbed_contacts
+from mjx_supportfield.multicontact import tilt_closed_form
+from mjx_supportfield.multicontact import tilt_mpr
+from mjx_supportfield.multicontact import tilt_rotation
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import needs_sdf
 from mjx_supportfield.sdf import sdf_contact
@@ -644,8 +647,92 @@ def _queued_patch(
   return a, b, scale, res
 
 
+@wp.func
+def _queued_tilt(
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  ms: MeshSupport,
+  mc_perturbation: float,
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  patch_pair: wp.array(dtype=int),
+  patch_result: wp.array(dtype=wp.vec4),
+  patch_pos: wp.array(dtype=wp.vec3),
+  i: int,
+  j: int,
+):
+  """Attempt j // NPERTURB of tilt j % NPERTURB of queued multi-contact pair i: its shapes,
+  scale, first contact and rotation."""
+  cid = patch_pair[i]
+  geoms = pair_in[cid]
+  worldid = pair_worldid_in[cid]
+  margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
+  a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
+                                   wp.max(margin + gap, 0.0), geoms, worldid, patch_result[i], patch_pos[i])
+  return a, b, scale, res, tilt_rotation(res.normal, mc_perturbation, j % NPERTURB, j // NPERTURB)
+
+
 @wp.kernel(enable_backward=False)
 def tilt_kernel(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  mc_perturbation: float,
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  patch_count: wp.array(dtype=int),
+  patch_pair: wp.array(dtype=int),
+  patch_result: wp.array(dtype=wp.vec4),
+  patch_pos: wp.array(dtype=wp.vec3),
+  nthread: int,
+  # Out:
+  tilt_result: wp.array2d(dtype=wp.vec4),
+  tilt_count: wp.array(dtype=int),
+  tilt_queue: wp.array(dtype=int),
+):
+  """Both attempts of each of the four tilts of the queued multi-contact pairs, one thread an
+  attempt, in closed form (multicontact.tilt_closed_form); the attempts it cannot answer are
+  queued for tilt_mpr_kernel, so the tilted MPRs run on dense warps. The steeper attempt is
+  computed whether or not patch_kernel's replay needs it: on the pile and on aloha_pot 84 % of
+  the first attempts land back on the first contact and need it."""
+  tid = wp.tid()
+  nattempt = 2 * NPERTURB
+  for j in range(tid, wp.min(patch_count[0], tilt_result.shape[0]) * nattempt, nthread):
+    i = j // nattempt
+    a, b, scale, res, rot = _queued_tilt(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap,
+                                         pair_margin, pair_gap, geom_xpos_in, geom_xmat_in, ms, mc_perturbation,
+                                         pair_in, pairid_in, pair_worldid_in, patch_pair, patch_result, patch_pos, i,
+                                         j % nattempt)
+    q = tilt_closed_form(a, b, ms, support_mode, res, scale, rot)
+    tilt_result[i, j % nattempt] = q
+    if q[3] == UNKNOWN:
+      tilt_queue[wp.atomic_add(tilt_count, 0, 1)] = j
+
+
+@wp.kernel(enable_backward=False)
+def tilt_mpr_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
   geom_dataid: wp.array2d(dtype=int),
@@ -667,33 +754,27 @@ def tilt_kernel(
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
-  patch_count: wp.array(dtype=int),
   patch_pair: wp.array(dtype=int),
   patch_result: wp.array(dtype=wp.vec4),
   patch_pos: wp.array(dtype=wp.vec3),
+  tilt_count: wp.array(dtype=int),
+  tilt_queue: wp.array(dtype=int),
   nthread: int,
   # Out:
   tilt_result: wp.array2d(dtype=wp.vec4),
 ):
-  """Both attempts of each of the four tilts of the queued multi-contact pairs, one thread an
-  attempt: the eight MPRs of a pair run side by side instead of one after another in
-  patch_kernel's thread (at 1024 worlds that chain was the kernel's whole time). The steeper
-  attempt is computed whether or not the replay needs it: on the pile and on aloha_pot 84 % of
-  the first attempts land back on the first contact and need it."""
+  """The tilted MPRs of the attempts tilt_kernel queued (edge against edge, or a foot beside
+  the face), one thread an attempt."""
   tid = wp.tid()
   nattempt = 2 * NPERTURB
-  for j in range(tid, wp.min(patch_count[0], tilt_result.shape[0]) * nattempt, nthread):
+  for s in range(tid, tilt_count[0], nthread):
+    j = tilt_queue[s]
     i = j // nattempt
-    k = j % NPERTURB
-    attempt = (j % nattempt) // NPERTURB
-    cid = patch_pair[i]
-    geoms = pair_in[cid]
-    worldid = pair_worldid_in[cid]
-    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
-    a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
-                                     wp.max(margin + gap, 0.0), geoms, worldid, patch_result[i], patch_pos[i])
-    tilt_result[i, attempt * NPERTURB + k] = tilt_attempt(a, b, ms, support_mode, res, scale, tolerance, iterations,
-                                                          mc_perturbation, k, attempt)
+    a, b, scale, res, rot = _queued_tilt(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap,
+                                         pair_margin, pair_gap, geom_xpos_in, geom_xmat_in, ms, mc_perturbation,
+                                         pair_in, pairid_in, pair_worldid_in, patch_pair, patch_result, patch_pos, i,
+                                         j % nattempt)
+    tilt_result[i, j % nattempt] = tilt_mpr(a, b, ms, support_mode, res, scale, tolerance, iterations, rot)
 
 
 @wp.kernel(enable_backward=False)
@@ -762,10 +843,10 @@ def patch_kernel(
 ):
   """The pairs convex_narrowphase queued for multi-contact: the tilts, then all their contacts.
 
-  A separate kernel so that warps run only pairs that need the four extra MPRs: in the convex
-  kernel one such pair held its whole warp (8x the cost on a GPU). The tilts' MPRs come from
-  tilt_kernel for the first ``len(tilt_result)`` queued pairs; this kernel replays the tilt
-  logic with them, and runs the MPRs itself for any pair beyond.
+  A separate kernel so that warps run only pairs that need the tilts: in the convex kernel one
+  such pair held its whole warp (8x the cost on a GPU). The tilts come from tilt_kernel and
+  tilt_mpr_kernel for the first ``len(tilt_result)`` queued pairs; this kernel replays the tilt
+  logic with them, and computes the tilts itself for any pair beyond.
   """
   tid = wp.tid()
   for i in range(tid, patch_count[0], nthread):

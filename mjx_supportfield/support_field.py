@@ -61,6 +61,8 @@ class HullData:
   plane_adr: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int32))
   plane_num: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int32))
   plane: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 4), np.float32))
+  # MuJoCo's hull polygons (see MeshSupport); none: no point is ever known to lie on a face
+  polygons: dict = dataclasses.field(default_factory=dict)
 
 
 def mesh_hull(mjm: mujoco.MjModel, meshid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -114,6 +116,43 @@ def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   return np.concatenate([n, (hull @ n.T).max(axis=0)[:, None]], axis=1).astype(np.float32)
 
 
+def hull_polygons(mjm: mujoco.MjModel, hull_adr: np.ndarray, hull_num: np.ndarray, hull_vert: np.ndarray) -> dict:
+  """MuJoCo's hull polygons re-indexed for MeshSupport: corners as local hull indices, and per
+  hull vertex (global hull index) the polygons around it. A polygon with a corner that is not a
+  hull vertex gets no corners (never used)."""
+  nmesh = len(hull_num)
+  npoly = np.asarray(mjm.mesh_polynum, np.int64)[:nmesh]
+  if nmesh == 0 or npoly.sum() == 0:
+    return {}
+  vertadr = np.asarray(mjm.mesh_vertadr, np.int64)
+  mesh_of_hull = np.repeat(np.arange(nmesh), hull_num)
+  local = np.arange(len(hull_vert)) - np.asarray(hull_adr, np.int64)[mesh_of_hull]
+  hull_index = np.full(mjm.nmeshvert, -1, np.int64)  # global mesh vertex -> local hull index
+  hull_index[vertadr[mesh_of_hull] + hull_vert] = local
+  vert_adr = np.asarray(mjm.mesh_polyvertadr, np.int64)
+  vert_num = np.asarray(mjm.mesh_polyvertnum, np.int64)
+  mesh_of_poly = np.repeat(np.arange(nmesh), npoly)
+  corner_poly = np.repeat(np.arange(len(vert_num)), vert_num)
+  within = np.arange(vert_num.sum()) - np.repeat(np.cumsum(vert_num) - vert_num, vert_num)
+  corner = np.repeat(vert_adr, vert_num) + within  # every polygon's corners, in order
+  corners = hull_index[vertadr[mesh_of_poly[corner_poly]] + np.asarray(mjm.mesh_polyvert, np.int64)[corner]]
+  bad = np.zeros(len(vert_num), bool)
+  bad[corner_poly[corners < 0]] = True
+  poly_vert = np.zeros(max(len(np.asarray(mjm.mesh_polyvert)), 1), np.int32)
+  poly_vert[corner] = np.maximum(corners, 0)
+  around = vertadr[mesh_of_hull] + hull_vert  # each hull vertex as a global mesh vertex
+  return {
+    "poly_adr": np.asarray(mjm.mesh_polyadr, np.int32)[:nmesh],
+    "poly_normal": np.asarray(mjm.mesh_polynormal, np.float32).reshape(-1, 3),
+    "poly_vert_adr": vert_adr.astype(np.int32),
+    "poly_vert_num": np.where(bad | (vert_num < 3), 0, vert_num).astype(np.int32),
+    "poly_vert": poly_vert,
+    "vert_poly_adr": np.asarray(mjm.mesh_polymapadr, np.int32)[around],
+    "vert_poly_num": np.asarray(mjm.mesh_polymapnum, np.int32)[around],
+    "vert_poly": np.asarray(mjm.mesh_polymap, np.int32),
+  }
+
+
 def hull_data(mjm: mujoco.MjModel) -> HullData:
   """Flattens the hulls of all meshes of a model."""
   parts = [mesh_hull(mjm, i) for i in range(mjm.nmesh)]
@@ -124,10 +163,12 @@ def hull_data(mjm: mujoco.MjModel) -> HullData:
   centers = [
     mjm.mesh_vert[mjm.mesh_vertadr[i] + p[0]].mean(axis=0) if len(p[0]) else np.zeros(3) for i, p in enumerate(parts)
   ]
+  hull_adr = np.concatenate([[0], np.cumsum(hull_num)[:-1]]).astype(np.int32) if parts else np.zeros(0, np.int32)
+  hull_vert = np.concatenate([p[0] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32)
   return HullData(
-    hull_adr=np.concatenate([[0], np.cumsum(hull_num)[:-1]]).astype(np.int32) if parts else np.zeros(0, np.int32),
+    hull_adr=hull_adr,
     hull_num=hull_num,
-    hull_vert=np.concatenate([p[0] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32),
+    hull_vert=hull_vert,
     hull_center=np.array(centers, dtype=np.float32).reshape(-1, 3),
     nbr_adr=np.concatenate([[0], np.cumsum(nbr_num)[:-1]]).astype(np.int32) if len(nbr_num) else np.zeros(0, np.int32),
     nbr_num=nbr_num,
@@ -135,6 +176,7 @@ def hull_data(mjm: mujoco.MjModel) -> HullData:
     plane_adr=np.concatenate([[0], np.cumsum(plane_num)[:-1]]).astype(np.int32) if parts else np.zeros(0, np.int32),
     plane_num=plane_num,
     plane=np.concatenate(planes).astype(np.float32) if parts else np.zeros((0, 4), np.float32),
+    polygons=hull_polygons(mjm, hull_adr, hull_num, hull_vert),
   )
 
 
@@ -539,6 +581,7 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.plane_adr = arr(hd.plane_adr if has_planes else np.zeros(nmesh, np.int32))
   ms.plane_num = arr(hd.plane_num if has_planes else np.zeros(nmesh, np.int32))
   ms.plane = arr(hd.plane if has_planes else np.zeros((1, 4), np.float32), wp.vec4)
+  _set_polygons(ms, hd, arr)
   extremes = wp.array(extreme_vertices(hd, host_vert, vertadr), dtype=int, device=device)
   if adaptive:
     field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)
@@ -549,6 +592,19 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   if adaptive:
     _fit_budget(ms, field_res, 2 * res * res, extremes, device)
   return ms
+
+
+def _set_polygons(ms: MeshSupport, hd: HullData, arr) -> None:
+  """MeshSupport's polygon arrays from ``hd.polygons`` (empty: no mesh has polygons)."""
+  poly = hd.polygons
+  nmesh, nhull = len(hd.hull_num), len(hd.hull_vert)
+  if not poly:  # one unused entry where an array would be empty; no vertex lists a polygon
+    poly = {"poly_adr": np.zeros(nmesh, np.int32), "poly_normal": np.zeros((1, 3), np.float32),
+            "poly_vert_adr": np.zeros(1, np.int32), "poly_vert_num": np.zeros(1, np.int32),
+            "poly_vert": np.zeros(1, np.int32), "vert_poly_adr": np.zeros(nhull, np.int32),
+            "vert_poly_num": np.zeros(nhull, np.int32), "vert_poly": np.zeros(1, np.int32)}
+  for name, values in poly.items():
+    setattr(ms, name, arr(values, wp.vec3 if name == "poly_normal" else int))
 
 
 _BUDGET_ROUNDS = 4

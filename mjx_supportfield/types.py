@@ -42,6 +42,15 @@ class MeshSupport:
   plane_adr: wp.array(dtype=int)  # per mesh: first hull face plane
   plane_num: wp.array(dtype=int)  # per mesh: hull face planes (0: none known)
   plane: wp.array(dtype=wp.vec4)  # hull face planes: outward unit normal, offset (mesh frame)
+  # MuJoCo's hull polygons (coplanar triangles merged), for telling whether a point lies on a face
+  poly_adr: wp.array(dtype=int)  # per mesh: first polygon
+  poly_normal: wp.array(dtype=wp.vec3)  # per polygon: outward unit normal (mesh frame)
+  poly_vert_adr: wp.array(dtype=int)  # per polygon: first corner in poly_vert
+  poly_vert_num: wp.array(dtype=int)  # per polygon: corners (0: unusable)
+  poly_vert: wp.array(dtype=int)  # corners in order, as local hull indices
+  vert_poly_adr: wp.array(dtype=int)  # per hull vertex: first entry in vert_poly
+  vert_poly_num: wp.array(dtype=int)  # per hull vertex: polygons it is a corner of
+  vert_poly: wp.array(dtype=int)  # polygons (indices within the mesh) around each hull vertex
 
 
 @wp.struct

@@ -11,8 +11,8 @@ reported as the rest (solver, kinematics, ...), with the mean solver iterations.
 
 A variant is ``default`` or Options fields as ``key=value;key=value`` (Python literals), e.g.
 ``multi_contact=False;mpr_refine=0``. One more key, ``max_registers=N``, rebuilds the MPR, GJK,
-tilt and patch kernels with at most N registers a thread (Warp's ``cuda_max_registers``; they
-sit at the 255 cap, which leaves 8 warps an SM) for that variant.
+tilt and patch kernels with at most N registers a thread instead of narrowphase.HEAVY_REGISTERS
+(Warp's ``cuda_max_registers``; 255 lifts the cap) for that variant.
 """
 
 import argparse

@@ -11,6 +11,7 @@ from typing import Optional
 import mujoco
 import mujoco_warp as mjw
 import warp as wp
+from mujoco_warp._src import collision_driver
 
 from mjx_supportfield.install import install
 from mjx_supportfield.options import Options
@@ -18,7 +19,10 @@ from mjx_supportfield.options import Options
 
 @dataclasses.dataclass
 class Row:
-  """One timing: scene, nworld, impl ("plugin" | "stock"), stage ("collision" | "step")."""
+  """One timing: scene, nworld, impl ("plugin" | "stock"), stage ("collision" | "step").
+
+  A collision row also carries ``step_minus_rest_ms``: the step minus the step without collision.
+  """
 
   scene: str
   nworld: int
@@ -26,6 +30,7 @@ class Row:
   stage: str
   ms: float
   contacts_per_world: float
+  step_minus_rest_ms: Optional[float] = None
 
 
 class Progress:
@@ -75,6 +80,42 @@ def _time_graph(fn, launches: int) -> float:
   return (time.perf_counter() - t) / launches * 1e3
 
 
+_STEPS_PER_GRAPH = 10
+
+
+def _time_collision_in_steps(m, d, launches: int) -> Optional[float]:
+  """GPU milliseconds of the collision stage per step, inside graph-captured steps: timing events
+  recorded around every collision call that ``mjw.step`` makes (through the module attribute
+  MuJoCo Warp calls, where ``install`` puts its dispatcher). On the CPU: None."""
+  if not wp.get_device().is_cuda:
+    return None
+  calls = []
+  inner = collision_driver.collision
+
+  def timed(m_, d_, awake_prev=None):
+    start, end = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
+    wp.record_event(start)
+    inner(m_, d_, awake_prev)
+    wp.record_event(end)
+    calls.append((start, end))
+
+  collision_driver.collision = timed
+  try:
+    with wp.ScopedCapture() as capture:
+      for _ in range(_STEPS_PER_GRAPH):
+        mjw.step(m, d)
+  finally:
+    collision_driver.collision = inner
+  wp.capture_launch(capture.graph)  # warm
+  total = 0.0
+  replays = max(1, launches // _STEPS_PER_GRAPH)
+  for _ in range(replays):
+    wp.capture_launch(capture.graph)
+    wp.synchronize()  # an event holds its last replay's time only
+    total += sum(wp.get_event_elapsed_time(start, end) for start, end in calls)
+  return total / (replays * _STEPS_PER_GRAPH)
+
+
 def scene_name(path: str) -> str:
   """A scene's name: its file name, or its folder's for MuJoCo Warp's ``.../aloha_pot/scene.xml``."""
   scene = os.path.basename(path).removesuffix(".xml")
@@ -103,13 +144,17 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
       mjw.collision(m, d)
       contacts = min(int(d.nacon.numpy()[0]), d.naconmax) / nworld
       ms_step = _time_graph(lambda: mjw.step(m, d), launches)
-      # the collision stage's share of a step: the step minus the step without collision (the
-      # contacts stay as the last step left them). Timing collision calls repeated on one state
-      # would flatter the plugin: from the second call on, its warm start holds the answer.
+      # the collision stage: timed inside evolving steps (events around each collision call).
+      # Timing collision calls repeated on one state would flatter the plugin: from the second
+      # call on, its warm start holds the answer. Also the step minus the step without collision
+      # (the contacts stay as the last step left them), which adds what the collision's output
+      # changes in the rest of the step.
+      ms_collision = _time_collision_in_steps(m, d, launches)
       m.opt.run_collision_detection = False
       ms_rest = _time_graph(lambda: mjw.step(m, d), launches)
       m.opt.run_collision_detection = True
-      rows.append(Row(scene, nworld, impl, "collision", ms_step - ms_rest, contacts))
+      diff = ms_step - ms_rest
+      rows.append(Row(scene, nworld, impl, "collision", diff if ms_collision is None else ms_collision, contacts, diff))
       rows.append(Row(scene, nworld, impl, "step", ms_step, contacts))
       if progress:
         progress.step(f"{scene} nworld={nworld} {impl}")
@@ -119,14 +164,17 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
 def format_table(rows: list[Row]) -> str:
   """ms, million world-steps per second and stock/plugin ratio per scene, nworld and stage."""
   out = [f"{'scene':24s} {'nworld':>6s} {'stage':9s} {'stock ms':>9s} {'plugin ms':>9s} {'speed-up':>8s} "
-         f"{'plugin Mws/s':>12s} {'con/world stock':>15s} {'plugin':>7s}"]
+         f"{'plugin Mws/s':>12s} {'con/world stock':>15s} {'plugin':>7s} {'step-rest: stock':>16s} {'plugin':>7s}"]
   keyed = {(r.scene, r.nworld, r.stage, r.impl): r for r in rows}
   for (scene, nworld, stage, impl), r in keyed.items():
     if impl != "plugin" or (scene, nworld, stage, "stock") not in keyed:
       continue
     s = keyed[(scene, nworld, stage, "stock")]
-    out.append(f"{scene:24s} {nworld:6d} {stage:9s} {s.ms:9.3f} {r.ms:9.3f} {s.ms / r.ms:7.2f}x "
-               f"{nworld / r.ms / 1e3:12.2f} {s.contacts_per_world:15.1f} {r.contacts_per_world:7.1f}")
+    line = (f"{scene:24s} {nworld:6d} {stage:9s} {s.ms:9.3f} {r.ms:9.3f} {s.ms / r.ms:7.2f}x "
+            f"{nworld / r.ms / 1e3:12.2f} {s.contacts_per_world:15.1f} {r.contacts_per_world:7.1f}")
+    if r.step_minus_rest_ms is not None and s.step_minus_rest_ms is not None:
+      line += f" {s.step_minus_rest_ms:16.3f} {r.step_minus_rest_ms:7.3f}"
+    out.append(line)
   return "\n".join(out)
 
 

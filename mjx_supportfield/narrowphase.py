@@ -50,6 +50,11 @@ QUEUE_GJK = wp.constant(2)
 QUEUE_CANDIDATE = wp.constant(3)  # MPR pairs not yet tested for being apart (sift_mpr_pairs)
 NQUEUE = 4
 WARM_BEHIND = 0.02  # least distance of a warm start point behind the origin, x the pair's scale
+# register cap of the MPR, GJK and multi-contact kernels: uncapped they sit at 255 registers,
+# which leaves 8 warps an SM to hide their memory latency; at 128 (16 warps) they spill a few
+# hundred bytes to the stack and ran 10-30 % faster on an H200 (pile_32_128 and aloha_pot at
+# 8192 worlds, benchmarks/results/2026-11-24-h200-closedform-profile-steps.txt)
+HEAVY_REGISTERS = 128
 
 
 @functools.lru_cache(maxsize=None)
@@ -441,7 +446,7 @@ def convex_kernel(use_gjk: bool):
   the GPU.
   """
 
-  @wp.kernel(module="unique", enable_backward=False)
+  @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
   def convex_narrowphase(
     # Model:
     geom_type: wp.array(dtype=int),
@@ -681,7 +686,7 @@ def _queued_tilt(
   return a, b, scale, res, tilt_rotation(res.normal, mc_perturbation, j % NPERTURB, j // NPERTURB)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
 def tilt_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -731,7 +736,7 @@ def tilt_kernel(
       tilt_queue[wp.atomic_add(tilt_count, 0, 1)] = j
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
 def tilt_mpr_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -777,7 +782,7 @@ def tilt_mpr_kernel(
     tilt_result[i, j % nattempt] = tilt_mpr(a, b, ms, support_mode, res, scale, tolerance, iterations, rot)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
 def patch_kernel(
   # Model:
   geom_type: wp.array(dtype=int),

@@ -190,46 +190,33 @@ def _polygon_toward(ms: MeshSupport, mesh: int, vertex: int, u: wp.vec3) -> int:
 
 
 @wp.func
-def _beyond_polygon(ms: MeshSupport, mesh: int, poly: int, x: wp.vec3, tol: float) -> int:
-  """-1 when point x (mesh frame, in the plane of hull polygon ``poly``) lies inside the polygon
-  up to tol; else the corner (position in the polygon) that starts the edge x lies farthest
-  beyond (MuJoCo winds hull polygons counter-clockwise about their normal)."""
+def _in_polygon(ms: MeshSupport, mesh: int, poly: int, x: wp.vec3, tol: float) -> bool:
+  """Whether point x (mesh frame, in the polygon's plane) lies inside hull polygon ``poly``,
+  up to tol."""
   normal = ms.poly_normal[poly]
   adr = ms.poly_vert_adr[poly]
   nvert = ms.poly_vert_num[poly]
   prev = hull_point(ms, mesh, ms.poly_vert[adr + nvert - 1])
-  worst = int(-1)
-  worst_side = float(-tol)
+  # inside a convex polygon, x is on the same side of every edge, whatever the winding
+  left = bool(False)
+  right = bool(False)
   for j in range(nvert):
     cur = hull_point(ms, mesh, ms.poly_vert[adr + j])
     e = cur - prev
-    side = wp.dot(wp.cross(e, x - prev), normal) / wp.max(wp.length(e), 1.0e-30)
-    if side < worst_side:
-      worst = (j + nvert - 1) % nvert
-      worst_side = side
+    side = wp.dot(wp.cross(e, x - prev), normal)
+    slack = tol * wp.length(e)
+    if side > slack:
+      left = True
+    if side < -slack:
+      right = True
     prev = cur
-  return worst
-
-
-@wp.func
-def _polygon_across(ms: MeshSupport, mesh: int, poly: int, p: int, q: int) -> int:
-  """The hull polygon (global index) other than ``poly`` with corners p and q (hull vertices):
-  the one across their edge; -1 if there is none."""
-  g = ms.hull_adr[mesh] + p
-  for k in range(ms.vert_poly_num[g]):
-    other = ms.poly_adr[mesh] + ms.vert_poly[ms.vert_poly_adr[g] + k]
-    if other != poly and ms.poly_vert_num[other] >= 3:
-      adr = ms.poly_vert_adr[other]
-      for j in range(ms.poly_vert_num[other]):
-        if ms.poly_vert[adr + j] == q:
-          return other
-  return -1
+  return not (left and right)
 
 
 @wp.func
 def _face_toward(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> tuple[wp.vec3, wp.vec3, int]:
   """The flat face of s whose outward normal is nearest to world direction u: its normal and a
-  point of its plane (world; grown by s.inflate) and an id for _beyond_face (a box face, a
+  point of its plane (world; grown by s.inflate) and an id for _in_face (a box face, a
   cylinder's end, a mesh's hull polygon); id -1 when s has no flat face there."""
   lu = wp.transpose(s.rot) @ u
   normal = wp.vec3(0.0)
@@ -260,22 +247,19 @@ def _face_toward(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> tuple[wp.v
 
 
 @wp.func
-def _beyond_face(s: Shape, ms: MeshSupport, face: int, x: wp.vec3, tol: float) -> int:
-  """-1 when world point x, in the plane of face ``face`` of s (see _face_toward), lies on that
-  face up to tol (the grown box or cylinder stands for s grown by s.inflate); else, on a mesh,
-  the corner of the hull polygon that starts the edge x lies beyond (_beyond_polygon), and -2
-  on other shapes."""
+def _in_face(s: Shape, ms: MeshSupport, face: int, x: wp.vec3, tol: float) -> bool:
+  """Whether world point x, in the plane of _face_toward's face ``face`` of s, lies on that face
+  (up to tol; the grown box or cylinder stands for s grown by s.inflate)."""
   local = wp.transpose(s.rot) @ (x - s.pos)
   grow = s.inflate + tol
-  if s.gtype == GeomType.MESH:
-    return _beyond_polygon(ms, s.mesh, face, local - s.inflate * ms.poly_normal[face], tol)
-  inside = bool(False)
   if s.gtype == GeomType.BOX:
-    inside = (wp.abs(local[0]) <= s.size[0] + grow and wp.abs(local[1]) <= s.size[1] + grow
-              and wp.abs(local[2]) <= s.size[2] + grow)
-  elif s.gtype == GeomType.CYLINDER:
-    inside = wp.length(wp.vec2(local[0], local[1])) <= s.size[0] + grow
-  return wp.where(inside, -1, -2)
+    return (wp.abs(local[0]) <= s.size[0] + grow and wp.abs(local[1]) <= s.size[1] + grow
+            and wp.abs(local[2]) <= s.size[2] + grow)
+  if s.gtype == GeomType.CYLINDER:
+    return wp.length(wp.vec2(local[0], local[1])) <= s.size[0] + grow
+  if s.gtype == GeomType.MESH:
+    return _in_polygon(ms, s.mesh, face, local - s.inflate * ms.poly_normal[face], tol)
+  return False
 
 
 NO_FACE = wp.constant(0)
@@ -283,52 +267,29 @@ OFF_FACE = wp.constant(1)
 EXIT_FACE = wp.constant(2)
 
 
-WALK_STEPS = 4  # faces of a mesh _vertex_on_face tries, walking toward the ray
-
-
 @wp.func
 def _vertex_on_face(v: Shape, f: Shape, ms: MeshSupport, mode: int, ray: wp.vec3, tol: float
                     ) -> tuple[wp.vec3, wp.vec3, float, int]:
   """A face of the Minkowski difference V - F seen by MPR's ray from the origin along ``ray``:
-  a flat face of ``f`` against the vertex of v deepest through it. Returns that vertex, its foot
-  on the face (MPR's two witness points when the ray leaves V - F through this face), the depth
-  (<= 0: V and F are apart) and NO_FACE (f has no flat face there), OFF_FACE (the ray leaves
-  through another face of V - F, or MPR's witness would not be the foot) or EXIT_FACE.
+  the flat face of ``f`` facing ``v`` (outward normal nearest to -ray) against the vertex of v
+  deepest through it. Returns that vertex, its foot on the face (MPR's two witness points when
+  the ray leaves V - F through this face), the depth (<= 0: V and F are apart) and NO_FACE
+  (f has no flat face there), OFF_FACE (the ray leaves through another face of V - F, or
+  MPR's witness would not be the foot) or EXIT_FACE.
 
   The ray meets the face's plane at depth / cos; it leaves V - F there exactly when that point
-  of the plane lies on the face (a convex body's boundary meets the ray once). The first face
-  tried faces v (outward normal nearest to -ray); on a mesh, while the ray's point lies beyond
-  an edge of the hull polygon, the polygon across that edge is tried next.
-  """
+  of the plane lies on the face (a convex body's boundary meets the ray once)."""
   normal, point, face = _face_toward(f, ms, -ray, mode)
-  vertex = wp.vec3(0.0)
-  foot = wp.vec3(0.0)
-  depth = float(1.0)
-  status = NO_FACE
-  for _ in range(WALK_STEPS):
-    if face < 0:
-      break
-    m = -normal  # the outward normal of this face of V - F
-    vertex = support_world(v, ms, m, mode)
-    depth = wp.dot(vertex - point, m)
-    status = OFF_FACE
-    cos = wp.dot(ray, m)
-    if depth <= 0.0 or cos <= 0.0:
-      break
-    foot = vertex - depth * m
-    beyond = _beyond_face(f, ms, face, vertex - depth / cos * ray, tol)
-    if beyond == -1:
-      if _beyond_face(f, ms, face, foot, tol) == -1:
-        status = EXIT_FACE
-      break
-    if beyond < 0:
-      break
-    adr = ms.poly_vert_adr[face]
-    corner = ms.poly_vert[adr + beyond]
-    face = _polygon_across(ms, f.mesh, face, corner, ms.poly_vert[adr + (beyond + 1) % ms.poly_vert_num[face]])
-    if face >= 0:
-      normal = f.rot @ ms.poly_normal[face]
-      point = f.pos + f.rot @ hull_point(ms, f.mesh, corner) + f.inflate * normal
+  if face < 0:
+    return wp.vec3(0.0), wp.vec3(0.0), 1.0, NO_FACE
+  m = -normal  # the outward normal of this face of V - F
+  vertex = support_world(v, ms, m, mode)
+  depth = wp.dot(vertex - point, m)
+  foot = vertex - depth * m
+  cos = wp.dot(ray, m)
+  status = OFF_FACE
+  if cos > 0.0 and _in_face(f, ms, face, vertex - depth / cos * ray, tol) and _in_face(f, ms, face, foot, tol):
+    status = EXIT_FACE
   return vertex, foot, depth, status
 
 
@@ -348,13 +309,11 @@ def tilt_closed_form(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprR
   n = first.normal
   tol = ON_FACE_TOL * scale
   va, foot_b, depth_a, status_a = _vertex_on_face(at, b, ms, mode, n, tol)
-  if status_a != NO_FACE and depth_a <= 0.0:
+  vb, foot_a, depth_b, status_b = _vertex_on_face(b, at, ms, mode, -n, tol)
+  if (status_a != NO_FACE and depth_a <= 0.0) or (status_b != NO_FACE and depth_b <= 0.0):
     return wp.vec4(0.0, 0.0, 0.0, MISSED)
   if status_a == EXIT_FACE:
     return _mapped_back(first, rot, va, foot_b)
-  vb, foot_a, depth_b, status_b = _vertex_on_face(b, at, ms, mode, -n, tol)
-  if status_b != NO_FACE and depth_b <= 0.0:
-    return wp.vec4(0.0, 0.0, 0.0, MISSED)
   if status_b == EXIT_FACE:
     return _mapped_back(first, rot, foot_a, vb)
   return wp.vec4(0.0, 0.0, 0.0, UNKNOWN)

@@ -48,6 +48,11 @@ from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
 MAX_CELLS = 4096  # cells visited per pair (a 64 x 64 window)
+# the passes' MPR reruns start half their depth behind the origin, not mpr.BEHIND x scale: from
+# farther back they converge onto a triangle prism's rim, where the normal leans toward a side
+# wall (a sphere on a sloping plane got a second contact 18° off at the edge between two
+# triangles), and rejecting rim answers outright left bodies sliding on the terrain
+RESTART_BEHIND = 0.0
 
 
 @wp.func
@@ -114,7 +119,8 @@ def prism_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3,
   """MPR of the triangle's prism against B (an edge of B dipping into the face), kept when the
   prism's witness point lies on the top triangle (answers through the prism's side walls, which
   are inside the terrain, are dropped) and no plane-pass candidate with its normal is as deep."""
-  res = mpr_refined(_prism_shape(v0, v1, v2, bottom, band), b, ms, mode, scale, tol, iterations, refine)
+  res = mpr_refined(_prism_shape(v0, v1, v2, bottom, band), b, ms, mode, scale, tol, iterations, refine,
+                    RESTART_BEHIND)
   if res.hit == 0 or wp.dot(res.normal, n) < 0.5:
     return c
   for k in range(c.n):
@@ -155,7 +161,7 @@ def point_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, q: wp.vec3, 
   point away from the terrain)."""
   if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
     return c
-  res = mpr_refined(_point_shape(q, band), b, ms, mode, scale, tol, iterations, refine)
+  res = mpr_refined(_point_shape(q, band), b, ms, mode, scale, tol, iterations, refine, RESTART_BEHIND)
   if res.hit == 0 or wp.dot(res.normal, na + nb) <= 0.0:
     return c
   return add_candidate(c, res.pos, res.normal, res.depth, spacing)

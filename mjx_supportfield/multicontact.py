@@ -21,6 +21,7 @@ from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import mpr
 from mjx_supportfield.support import count_supports
@@ -164,9 +165,10 @@ def tilt_mpr(
   """MPR with A tilted by ``rot`` about the first contact: the point (xyz) and its depth along
   the first normal (w), A's witness point rotated back with A; depth MISSED when the tilted
   shapes do not overlap."""
-  # every tilted MPR starts warm: looking along the first normal, from just behind the origin
-  q0 = behind_origin(first.normal, first.depth, scale)
-  r = mpr(_tilted(a, first.pos, rot), b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
+  # every tilted MPR starts warm: looking along the first normal, from behind the origin
+  tilted = _tilted(a, first.pos, rot)
+  q0 = behind_origin(tilted, b, ms, mode, first.normal, first.depth, scale, BEHIND)
+  r = mpr(tilted, b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
   if r.hit == 0:
     return wp.vec4(0.0, 0.0, 0.0, MISSED)
   # witness points in the tilted pose (pa - pb = depth * normal)

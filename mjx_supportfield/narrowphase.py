@@ -18,6 +18,7 @@ from mujoco_warp._src.types import vec5
 
 from mjx_supportfield import warmstart
 from mjx_supportfield.gjk import gjk_epa
+from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import apart_along_centres
 from mjx_supportfield.mpr import behind_origin
@@ -49,7 +50,6 @@ QUEUE_MPR = wp.constant(1)
 QUEUE_GJK = wp.constant(2)
 QUEUE_CANDIDATE = wp.constant(3)  # MPR pairs not yet tested for being apart (sift_mpr_pairs)
 NQUEUE = 4
-WARM_BEHIND = 0.02  # least distance of a warm start point behind the origin, x the pair's scale
 # register cap of the MPR, GJK and multi-contact kernels: uncapped they sit at 255 registers,
 # which leaves 8 warps an SM to hide their memory latency; at 128 (16 warps) they spill a few
 # hundred bytes to the stack and each ran 10-35 % faster on an H200 (pile_32_128 and aloha_pot
@@ -579,10 +579,8 @@ def convex_kernel(use_gjk: bool):
             wp.atomic_add(ws_misses, 0, 1)
           q0 = interior_point(a, b, scale)
           if attempt == 0 and last[3] > 0.0:
-            # start ~1 % of the pair's size behind the origin, not half a resting contact's few µm:
-            # that close, MPR's portal search is ill-conditioned, misses, and pays a cold retry
-            q0 = behind_origin(wp.vec3(last[0], last[1], last[2]), wp.max(last[3], WARM_BEHIND * scale), scale)
-          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine)
+            q0 = behind_origin(a, b, ms, support_mode, wp.vec3(last[0], last[1], last[2]), last[3], scale, BEHIND)
+          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine, BEHIND)
       if res.hit == 0:
         continue
       extra = Patch()

@@ -28,6 +28,7 @@ from mjx_supportfield.compare import mujoco_contacts
 from mjx_supportfield.compare import sample_states
 from mjx_supportfield.compare import warp_contacts
 from mjx_supportfield.mpr import apart_along_centres
+from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
@@ -300,7 +301,7 @@ def _evaluate(ms: MeshSupport, sa: wp.array(dtype=Shape), sb: wp.array(dtype=Sha
   out[i, DEPTH] = r.depth
   _put(out, i, NORMAL, r.normal)
   _put(out, i, POS, r.pos)
-  m = mpr_refined(a, b, ms, SUPPORT_REFINED, scale[i], TOL, iterations, 4)
+  m = mpr_refined(a, b, ms, SUPPORT_REFINED, scale[i], TOL, iterations, 4, BEHIND)
   out[i, MHIT] = float(m.hit)
   out[i, MDEPTH] = m.depth
   _put(out, i, MNORMAL, m.normal)

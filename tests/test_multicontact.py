@@ -13,6 +13,7 @@ import mjx_supportfield as sf
 from mjx_supportfield import collider
 from mjx_supportfield import multicontact
 from mjx_supportfield import narrowphase
+from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import mpr
 from mjx_supportfield.types import SUPPORT_REFINED
@@ -243,8 +244,9 @@ def _both_tilts(
                                                    pair_worldid, patch_pair, patch_result, patch_pos, i, j)
   closed[i, j] = multicontact.tilt_closed_form(a, b, ms, SUPPORT_REFINED, res, scale, rot)
   # the reference: the tilted MPR run to convergence (tilt_mpr stops at TILT_ITERATIONS)
-  r = mpr(multicontact._tilted(a, res.pos, rot), b, ms, SUPPORT_REFINED, behind_origin(res.normal, res.depth, scale),
-          scale, 1.0e-7, 500)
+  tilted = multicontact._tilted(a, res.pos, rot)
+  q0 = behind_origin(tilted, b, ms, SUPPORT_REFINED, res.normal, res.depth, scale, BEHIND)
+  r = mpr(tilted, b, ms, SUPPORT_REFINED, q0, scale, 1.0e-7, 500)
   by_mpr[i, j] = wp.vec4(0.0, 0.0, 0.0, multicontact.MISSED)
   if r.hit != 0:
     by_mpr[i, j] = multicontact._mapped_back(res, rot, r.pos + 0.5 * r.depth * r.normal, r.pos - 0.5 * r.depth * r.normal)

@@ -6,10 +6,11 @@
 #
 # 1. compiles every scene of run_suite.py in parallel processes (Warp's kernel cache; the
 #    terrain's compile goes on beside the next steps);
-# 2. times the main scenes (aloha_pot, pile_32_128) with run_suite.py;
-# 3. profiles the collision kernels inside 30 steps of both at 8192 worlds, stock and plugin
-#    variants (PROFILE_VARIANTS);
-# 4. times the other scenes (or the SCENEs given), one run_suite.py call each.
+# 2. times the main scenes (aloha_pot, pile_32_128) with run_suite.py (MAIN=0 skips them);
+# 3. times the other scenes (or the SCENEs given), one run_suite.py call each;
+# 4. profiles the collision kernels inside 30 steps of the main scenes at 8192 worlds, stock and
+#    plugin variants (PROFILE_VARIANTS), and, with BASELINE=DIR (a directory holding another
+#    version of the mjx_supportfield package), that version's default too.
 # Each step writes its files into RESULTS_DIR as it ends and touches RESULTS_DIR/<step>.done.
 set -uo pipefail
 out=${1:?results dir}
@@ -20,7 +21,7 @@ mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 others=("$@")
 [ ${#others[@]} -gt 0 ] || others=(primitives_32 humanoid pile_32_1024 pile_256_128 pile_1024_128 terrain_32)
-variants=${PROFILE_VARIANTS:-"default,max_registers=96,max_registers=168,warm_start=False,mpr_refine=0"}
+variants=${PROFILE_VARIANTS:-"default,warm_start=False,mpr_refine=0"}
 aloha=$(python3 -c "import mujoco_warp, os; print(os.path.join(os.path.dirname(mujoco_warp.__file__), 'test_data', 'aloha_pot', 'scene.xml'))")
 
 step() { echo "=== $(date +%T) $1"; }
@@ -28,28 +29,46 @@ step() { echo "=== $(date +%T) $1"; }
 step compile
 python3 benchmarks/make_scenes.py
 # the terrain's first compile (stock's heightfield kernels) takes over 10 minutes: it goes on
-# beside the rest and the terrain is timed last
+# beside the rest; the terrain waits for it
 python3 benchmarks/run_suite.py --compile-only --only terrain_32 > "$out/compile-terrain.log" 2>&1 &
+if [ -n "${BASELINE:-}" ]; then  # the baseline's own narrow-phase kernels, for the profile
+  for scene in benchmarks/scenes/pile_32_128.xml "$aloha"; do
+    PYTHONPATH="$BASELINE:${PYTHONPATH:-}" python3 benchmarks/profile_collision.py "$scene" --nworld 64 --steps 1 --no-stock
+  done > "$out/compile-baseline.log" 2>&1 &
+fi
 python3 -c "
 import sys; sys.path.insert(0, 'benchmarks')
 import run_suite
 print(run_suite.compile_all([s for s in run_suite.SCENES if s != 'terrain_32'], 8))"
 touch "$out/compile.done"
 
-step main-scenes
-python3 benchmarks/run_suite.py --only aloha_pot pile_32_128 --out "$out" --suffix=-main
-touch "$out/main.done"
+if [ "${MAIN:-1}" != 0 ]; then
+  step main-scenes
+  python3 benchmarks/run_suite.py --only aloha_pot pile_32_128 --out "$out" --suffix=-main
+  touch "$out/main.done"
+fi
 
-step profile
-for scene in benchmarks/scenes/pile_32_128.xml "$aloha"; do
-  python3 benchmarks/profile_collision.py "$scene" --nworld 8192 --steps 30 --variants "$variants"
-done > "$out/profile-steps.txt" 2>&1
-touch "$out/profile.done"
+profile() {
+  for scene in benchmarks/scenes/pile_32_128.xml "$aloha"; do
+    python3 benchmarks/profile_collision.py "$scene" --nworld 8192 --steps 30 --variants "$variants"
+    if [ -n "${BASELINE:-}" ]; then
+      echo "== baseline: $BASELINE"
+      PYTHONPATH="$BASELINE:${PYTHONPATH:-}" python3 benchmarks/profile_collision.py "$scene" --nworld 8192 --steps 30 --no-stock
+    fi
+  done > "$out/profile-steps.txt" 2>&1
+  touch "$out/profile.done"
+}
 
+# "profile" among the SCENEs places the profile there; else it runs last
 for scene in "${others[@]}"; do
   step "$scene"
+  if [ "$scene" = profile ]; then
+    profile
+    continue
+  fi
   [ "$scene" = terrain_32 ] && wait  # its compile
   python3 benchmarks/run_suite.py --only "$scene" --out "$out" --suffix="-$scene"
 done
 touch "$out/others.done"
+[[ " ${others[*]} " == *" profile "* ]] || { step profile; profile; }
 step end

@@ -1,4 +1,4 @@
-"""Registers and stack per thread of the broad- and narrow-phase kernels, without a GPU.
+"""Registers, stack per thread and build time of the plugin's kernels for a GPU, without a GPU.
 
   python benchmarks/kernel_resources.py [--arch 90] [--ptxas PATH] [--out FILE] [--max-registers N]
 
@@ -8,6 +8,10 @@ its stack: a large stack means slow local-memory traffic for every thread, whate
 takes (MPR and GJK in one kernel cost MPR 10 KB a thread). Warp 1.19 emits PTX 9.4, which
 needs ptxas from CUDA 13.4 or later, e.g. the ``nvidia-cuda-nvcc`` wheel
 (``nvidia/cu13/bin/ptxas`` inside it).
+
+The build time is NVRTC's (CUDA source to PTX) plus ptxas's (PTX to machine code) for the
+kernel's whole module, roughly what a user's first run waits for on the GPU; kernels of a
+module built earlier in the run show "shared".
 """
 
 import argparse
@@ -15,11 +19,14 @@ import os
 import re
 import subprocess
 import tempfile
+import time
 
 import warp as wp
 
 from mjx_supportfield import broadphase
+from mjx_supportfield import heightfield
 from mjx_supportfield import narrowphase
+from mjx_supportfield import nonconvex
 
 # broad-phase kernels are built per model; this key is a model without per-world sizes or sleep
 _KEY = (0, 1, 1, 1, 1, 1, 1, False, False)
@@ -39,12 +46,18 @@ def kernels() -> dict:
     "tilt (closed form)": narrowphase.tilt_kernel,
     "tilt (MPR)": narrowphase.tilt_mpr_kernel,
     "patch (multi-contact)": narrowphase.patch_kernel,
+    "heightfield": heightfield.hfield_narrowphase,
+    "non-convex (SDF)": nonconvex.nonconvex_narrowphase,
   }
 
 
-def resources(kernel, arch: int, ptxas: str, workdir: str) -> tuple[int, int]:
-  """(registers, stack bytes) of one kernel's forward entry, from ptxas."""
+def resources(kernel, arch: int, ptxas: str, workdir: str) -> tuple[int, int, float | None]:
+  """(registers, stack bytes) of one kernel's forward entry, from ptxas, and the seconds its
+  module took to build (None when an earlier kernel of this run built it)."""
+  start = time.perf_counter()
+  built_before = set(os.listdir(workdir))
   paths = wp.compile_aot_module(kernel.module, arch=arch, use_ptx=True, module_dir=workdir)
+  fresh = any(os.path.basename(path) not in built_before for path in paths)
   name = kernel.get_mangled_name()  # known once the module is built
   for path in paths:
     ptx = os.path.join(workdir, "kernel.ptx")
@@ -53,12 +66,13 @@ def resources(kernel, arch: int, ptxas: str, workdir: str) -> tuple[int, int]:
     out = subprocess.run([ptxas, "-v", f"-arch=sm_{arch}", ptx, "-o", os.devnull], capture_output=True, text=True)
     if out.returncode != 0:
       raise RuntimeError(f"ptxas failed on {path}: {out.stderr.strip()[-500:]}")
+    seconds = time.perf_counter() - start if fresh else None
     entry = None
     for line in (out.stdout + out.stderr).splitlines():
       if m := ENTRY.search(line):
         entry = m.group(1)
       elif (m := USAGE.search(line)) and entry and entry.startswith(name) and entry.endswith("forward"):
-        return int(m.group(1)), int(m.group(2) or 0)  # no stack line: a kernel without calls
+        return int(m.group(1)), int(m.group(2) or 0), seconds  # no stack line: a kernel without calls
   raise RuntimeError(f"ptxas reported nothing for {name}")
 
 
@@ -72,15 +86,18 @@ def main():
   wp.config.log_level = wp.LOG_WARNING
   wp.init()
   cap = f", at most {args.max_registers} registers" if args.max_registers else ""
-  lines = [f"sm_{args.arch}, warp {wp.__version__}{cap}", f"{'kernel':24s} {'registers':>9s} {'stack B':>8s}"]
+  lines = [f"sm_{args.arch}, warp {wp.__version__}{cap}",
+           f"{'kernel':24s} {'registers':>9s} {'stack B':>8s} {'build s':>8s}"]
+  print("\n".join(lines), flush=True)
   with tempfile.TemporaryDirectory() as workdir:
     for label, kernel in kernels().items():
       if args.max_registers:
         kernel = wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=args.max_registers)
-      regs, stack = resources(kernel, args.arch, args.ptxas, workdir)
-      lines.append(f"{label:24s} {regs:9d} {stack:8d}")
+      regs, stack, seconds = resources(kernel, args.arch, args.ptxas, workdir)
+      built = "shared" if seconds is None else f"{seconds:.1f}"
+      lines.append(f"{label:24s} {regs:9d} {stack:8d} {built:>8s}")
+      print(lines[-1], flush=True)
   text = "\n".join(lines)
-  print(text)
   if args.out:
     with open(args.out, "w") as f:
       f.write(text + "\n")

@@ -6,11 +6,11 @@ rows along y), solid down to ``-size[3]``. Each grid cell is split into two tria
 the diagonal from (row, col) to (row + 1, col + 1), as MuJoCo does.
 
 The cells under the geom's extent (support queries in the terrain frame) are visited, and
-each gives contact candidates in three passes:
-- the plane pass (geom points in terrain faces), run over all cells first: the geom's points
-  below a triangle's plane whose projection lies in the triangle: its deepest point, and a
-  box's corners, a mesh's hull vertices, a capsule's two ends. On flat terrain this gives
-  the contacts of a plane;
+give contact candidates in three passes:
+- the plane pass (geom points in terrain faces), first: B's deepest point under each
+  triangle's plane (and a capsule's two ends), and each of a box's corners and a mesh's hull
+  vertices against the triangle under it, kept when below the plane and over the triangle. On
+  flat terrain this gives the contacts of a plane;
 - the prism pass (a geom edge dipping into a face): MPR of the triangle's prism (triangle and
   base, as MuJoCo collides) against the geom, kept only when the prism's witness point lies
   on the top triangle and no plane-pass candidate with that normal is as deep. A prism's
@@ -21,6 +21,9 @@ each gives contact candidates in three passes:
   the geom's centre and its ends, that lie inside the geom; MPR of that point against the
   geom gives depth and normal (the geom's surface normal). This catches ridges and peaks
   poking into a geom, which no triangle's plane sees.
+The prism and point MPRs run in batches after cheap tests (B above the triangle's plane,
+outside a prism's side wall, a point outside B by one support query), so that the lanes of a
+warp run their MPRs side by side.
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
 points farthest from those already chosen are written, up to ``max_contacts``. A geom over
@@ -38,7 +41,7 @@ from mjx_supportfield.candidates import Candidates
 from mjx_supportfield.candidates import add_candidate
 from mjx_supportfield.candidates import empty
 from mjx_supportfield.candidates import write_candidates
-from mjx_supportfield.candidates import row
+from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.support import box_corner
@@ -55,6 +58,12 @@ MAX_CELLS = 4096  # cells visited per pair (a 64 x 64 window)
 RESTART_BEHIND = 0.0
 
 
+NFEATURE = 9  # terrain features a cell owns for the point pass (see _feature)
+NJOB = 2 + 3 * NFEATURE  # a cell's second-pass jobs: two prisms, then up to three points per feature
+JOB_BATCH = 16  # MPR jobs a lane gathers before running them
+vec_jobs = wp.types.vector(length=JOB_BATCH, dtype=int)
+
+
 @wp.func
 def _in_triangle_xy(p: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3) -> bool:
   """Whether p's projection along z falls in the triangle's (edges included)."""
@@ -69,32 +78,39 @@ def _in_triangle_xy(p: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3) -> bool:
 
 
 @wp.func
-def _plane_point(c: Candidates, p: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, n: wp.vec3, band: float,
-                 spacing: float) -> Candidates:
-  """A geom point p below the triangle's plane (within band) and over the triangle."""
+def _plane_depth(p: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, n: wp.vec3, band: float) -> float:
+  """How far a geom point p lies below the triangle's plane (grown by band), where p lies over
+  the triangle; 0 elsewhere."""
   depth = wp.dot(n, v0 - p) + band
   if depth <= 0.0 or not _in_triangle_xy(p, v0, v1, v2):
-    return c
-  return add_candidate(c, p + 0.5 * depth * n, n, depth, spacing)
+    return 0.0
+  return depth
 
 
 @wp.func
-def plane_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3,
-               n: wp.vec3, band: float, spacing: float) -> Candidates:
-  """Candidates of geom B against the triangle's plane, kept where they lie over the triangle."""
-  out = _plane_point(c, support_world(b, ms, -n, mode), v0, v1, v2, n, band, spacing)
+def _corners(b: Shape, ms: MeshSupport) -> int:
+  """How many of B's points, besides the deepest under each triangle, the plane pass tries: a
+  box's corners or a mesh's hull vertices (each against the triangle under it)."""
   if b.gtype == GeomType.BOX:
-    for k in range(8):
-      out = _plane_point(out, box_corner(b, k), v0, v1, v2, n, band, spacing)
-  elif b.gtype == GeomType.MESH:
-    for k in range(ms.hull_num[b.mesh]):
-      out = _plane_point(out, b.pos + b.rot @ hull_point(ms, b.mesh, k), v0, v1, v2, n, band, spacing)
-  elif b.gtype == GeomType.CAPSULE:
-    axis = wp.vec3(b.rot[0, 2], b.rot[1, 2], b.rot[2, 2])
-    for k in range(2):
-      end = b.pos + wp.where(k == 0, 1.0, -1.0) * b.size[1] * axis
-      out = _plane_point(out, end - b.size[0] * n, v0, v1, v2, n, band, spacing)
-  return out
+    return 8
+  if b.gtype == GeomType.MESH:
+    return ms.hull_num[b.mesh]
+  return 0
+
+
+@wp.func
+def _corner(b: Shape, ms: MeshSupport, k: int) -> wp.vec3:
+  """B's point k of those _corners counts."""
+  if b.gtype == GeomType.BOX:
+    return box_corner(b, k)
+  return b.pos + b.rot @ hull_point(ms, b.mesh, k)
+
+
+@wp.func
+def _capsule_end(b: Shape, k: int, n: wp.vec3) -> wp.vec3:
+  """The lowest point, against a plane with upward normal n, of a capsule's end k (0, 1)."""
+  axis = wp.vec3(b.rot[0, 2], b.rot[1, 2], b.rot[2, 2])
+  return b.pos + wp.where(k == 0, 1.0, -1.0) * b.size[1] * axis - b.size[0] * n
 
 
 @wp.func
@@ -113,23 +129,41 @@ def _prism_shape(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, bottom: float, band: flo
 
 
 @wp.func
-def prism_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3,
-               n: wp.vec3, bottom: float, band: float, spacing: float, scale: float, tol: float, iterations: int,
-               refine: int) -> Candidates:
-  """MPR of the triangle's prism against B (an edge of B dipping into the face), kept when the
-  prism's witness point lies on the top triangle (answers through the prism's side walls, which
-  are inside the terrain, are dropped) and no plane-pass candidate with its normal is as deep."""
-  res = mpr_refined(_prism_shape(v0, v1, v2, bottom, band), b, ms, mode, scale, tol, iterations, refine,
-                    RESTART_BEHIND)
-  if res.hit == 0 or wp.dot(res.normal, n) < 0.5:
-    return c
-  for k in range(c.n):
-    if wp.dot(row(c.normal, k), res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
-      return c
+def _outside_walls(b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, band: float,
+                   nwall: int) -> bool:
+  """Whether B (grown by band) lies wholly outside one of the prism's nwall = 3 vertical side
+  walls (through the triangle's edges): then the prism's MPR can find nothing. nwall comes in
+  as an argument so the loop is not unrolled (one support call site)."""
+  for i in range(nwall):
+    e0 = wp.where(i == 0, v0, wp.where(i == 1, v1, v2))
+    e1 = wp.where(i == 0, v1, wp.where(i == 1, v2, v0))
+    other = wp.where(i == 0, v2, wp.where(i == 1, v0, v1))
+    out = wp.vec3(e1[1] - e0[1], e0[0] - e1[0], 0.0)
+    out = wp.where(wp.dot(out, other - e0) > 0.0, -out, out)
+    length = wp.length(out)
+    if length > 0.0:
+      out = out / length
+      if wp.dot(support_world(b, ms, -out, mode) - e0, out) > band:
+        return True
+  return False
+
+
+@wp.func
+def _prism_answer_kept(c: Candidates, res: MprResult, n: wp.vec3, v0: wp.vec3, scale: float, tol: float) -> bool:
+  """Whether a prism's MPR answer is an edge of B dipping into the top face (normal n through
+  v0): the prism's witness point lies on the top triangle (answers through the side walls,
+  which are inside the terrain, are dropped) and no plane-pass candidate with its normal is
+  as deep."""
+  if wp.dot(res.normal, n) < 0.5:
+    return False
   witness = res.pos + 0.5 * res.depth * res.normal
   if wp.dot(n, witness - v0) < -1.0e-6 * scale:
-    return c
-  return add_candidate(c, res.pos, res.normal, res.depth, spacing)
+    return False
+  for k in range(c.n):
+    normal = wp.vec3(c.normal[k, 0], c.normal[k, 1], c.normal[k, 2])
+    if wp.dot(normal, res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
+      return False
+  return True
 
 
 @wp.func
@@ -151,20 +185,6 @@ def _closest_on_segment(p0: wp.vec3, p1: wp.vec3, x: wp.vec3) -> wp.vec3:
   e = p1 - p0
   t = wp.clamp(wp.dot(x - p0, e) / wp.max(wp.dot(e, e), 1.0e-30), 0.0, 1.0)
   return p0 + t * e
-
-
-@wp.func
-def point_pass(c: Candidates, b: Shape, ms: MeshSupport, mode: int, q: wp.vec3, lo: wp.vec3, hi: wp.vec3,
-               na: wp.vec3, nb: wp.vec3, band: float, spacing: float, scale: float, tol: float, iterations: int,
-               refine: int) -> Candidates:
-  """A point of the terrain's surface inside B: a contact with B's surface normal (which must
-  point away from the terrain)."""
-  if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
-    return c
-  res = mpr_refined(_point_shape(q, band), b, ms, mode, scale, tol, iterations, refine, RESTART_BEHIND)
-  if res.hit == 0 or wp.dot(res.normal, na + nb) <= 0.0:
-    return c
-  return add_candidate(c, res.pos, res.normal, res.depth, spacing)
 
 
 @wp.func
@@ -193,6 +213,94 @@ def _peak(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, si
   around = 0.25 * (hfield_data[adr + (r - 1) * ncol + c] + hfield_data[adr + (r + 1) * ncol + c]
                    + hfield_data[adr + r * ncol + c - 1] + hfield_data[adr + r * ncol + c + 1])
   return (h - around) * size[2] > eps
+
+
+@wp.func
+def _feature(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
+             dy: float, r: int, c: int, k: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3,
+             eps: float) -> tuple[wp.vec3, wp.vec3, bool]:
+  """Feature k of cell (r, c) as a segment e0-e1 (a point when e0 = e1), and whether it is
+  convex (a peak or a ridge): 0 the vertex p00; 1, 2 the edges p00-p01 and p00-p10; 3 the
+  diagonal p00-p11; 4, 5 the far edges p01-p11 and p10-p11; 6, 7, 8 the far vertices p01, p10
+  and p11 (4 to 8 belong to the cells on the far border of the visited range)."""
+  e0 = p00
+  e1 = p00
+  convex = bool(False)
+  if k == 0:
+    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, eps)
+  elif k == 1:
+    e1 = p01
+    other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
+    convex = r == 0 or _ridge(p00, p01, p11, other, eps)
+  elif k == 2:
+    e1 = p10
+    other = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
+    convex = c == 0 or _ridge(p00, p10, p11, other, eps)
+  elif k == 3:
+    e1 = p11
+    convex = _ridge(p00, p11, p10, p01, eps)
+  elif k == 4:
+    e0 = p01
+    e1 = p11
+    other = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
+    convex = c + 2 > ncol - 1 or _ridge(p01, p11, p00, other, eps)
+  elif k == 5:
+    e0 = p10
+    e1 = p11
+    other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
+    convex = r + 2 > nrow - 1 or _ridge(p10, p11, p00, other, eps)
+  elif k == 6:
+    e0 = p01
+    e1 = p01
+    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c + 1, eps)
+  elif k == 7:
+    e0 = p10
+    e1 = p10
+    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c, eps)
+  else:
+    e0 = p11
+    e1 = p11
+    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c + 1, eps)
+  return e0, e1, convex
+
+
+@wp.func
+def _cell(hfield_data: wp.array(dtype=float), adr: int, ncol: int, size: wp.vec4, dx: float, dy: float, r: int,
+          c: int) -> tuple[wp.vec3, wp.vec3, wp.vec3, wp.vec3, wp.vec3, wp.vec3]:
+  """Cell (r, c)'s corners p00, p01, p10, p11 and the upward normals of its triangles
+  (p00, p10, p11) and (p00, p11, p01)."""
+  p00 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c)
+  p01 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c + 1)
+  p10 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c)
+  p11 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c + 1)
+  na = wp.normalize(wp.cross(p10 - p00, p11 - p00))
+  na = wp.where(na[2] < 0.0, -na, na)
+  nb = wp.normalize(wp.cross(p11 - p00, p01 - p00))
+  nb = wp.where(nb[2] < 0.0, -nb, nb)
+  return p00, p01, p10, p11, na, nb
+
+
+@wp.func
+def _feature_point(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
+                   dy: float, r: int, c: int, r1: int, c1: int, job: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3,
+                   p11: wp.vec3, center: wp.vec3, eps: float) -> tuple[wp.vec3, bool]:
+  """The terrain point of point-pass job (2 ...) of cell (r, c), and whether it is one: job
+  2 + 3 k + end is feature k's point nearest B's centre (end 0) or a ridge's ends (1, 2).
+  Only convex features (ridges, peaks) can poke into a geom (elsewhere the surface points
+  inside it are the plane pass's business); a face of B meets a ridge deepest at an end. The
+  far-border features belong to the range's last row and column of cells (r1, c1)."""
+  k = (job - 2) // 3
+  end = (job - 2) % 3
+  if (end > 0 and (k < 1 or k > 5)) or ((k == 4 or k == 6 or k == 8) and c < c1) or (
+      (k == 5 or k == 7 or k == 8) and r < r1):
+    return p00, False
+  e0, e1, convex = _feature(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, k, p00, p01, p10, p11, eps)
+  q = _closest_on_segment(e0, e1, center)
+  if end == 1:
+    q = e0
+  elif end == 2:
+    q = e1
+  return q, convex
 
 
 @wp.func
@@ -231,84 +339,108 @@ def terrain_candidates(
     r0 = wp.max(r0, rc - half)
     r1 = wp.min(r1, rc + half - 1)
   scale = wp.length(hi - lo) + dx + dy
-  # first the plane pass everywhere (face contacts), then prisms and points, which skip what
-  # the face contacts already hold
-  for cell in range(2 * (r1 - r0 + 1) * (c1 - c0 + 1)):
-    second = cell // ((r1 - r0 + 1) * (c1 - c0 + 1))
-    r = r0 + (cell // (c1 - c0 + 1)) % (r1 - r0 + 1)
-    c = c0 + cell % (c1 - c0 + 1)
-    p00 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c)
-    p01 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c + 1)
-    p10 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c)
-    p11 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c + 1)
+  eps = 1.0e-6 * (dx + dy + size[2])
+  ncell = (r1 - r0 + 1) * (c1 - c0 + 1)
+  ncorner = _corners(b, ms)
+  nlow = wp.where(b.gtype == GeomType.CAPSULE, 3, 1)  # plane jobs a triangle: B's deepest point, a capsule's ends
+  # the plane pass (face contacts) first: B's corners against the triangle under each, then
+  # each cell's triangles against B's deepest points
+  for item in range(ncorner + ncell):
+    corner = wp.vec3(0.0)
+    r = r0 + (item - ncorner) // (c1 - c0 + 1)
+    c = c0 + (item - ncorner) % (c1 - c0 + 1)
+    if item < ncorner:
+      corner = _corner(b, ms, item)
+      c = int(wp.floor((corner[0] + size[0]) / dx))
+      r = int(wp.floor((corner[1] + size[1]) / dy))
+      if c < c0 or c > c1 or r < r0 or r > r1:
+        continue
+    p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
     if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < lo[2]:
       continue  # the geom is above this cell
-    # the two triangles (p00, p10, p11) and (p00, p11, p01), normals up
-    na = wp.normalize(wp.cross(p10 - p00, p11 - p00))
-    na = wp.where(na[2] < 0.0, -na, na)
-    nb = wp.normalize(wp.cross(p11 - p00, p01 - p00))
-    nb = wp.where(nb[2] < 0.0, -nb, nb)
-    if second == 0:
-      cands = plane_pass(cands, b, ms, mode, p00, p10, p11, na, band, spacing)
-      cands = plane_pass(cands, b, ms, mode, p00, p11, p01, nb, band, spacing)
-      continue
-    cands = prism_pass(cands, b, ms, mode, p00, p10, p11, na, -size[3], band, spacing, scale, tol, iterations, refine)
-    cands = prism_pass(cands, b, ms, mode, p00, p11, p01, nb, -size[3], band, spacing, scale, tol, iterations, refine)
-    # this cell's vertex p00 and edges from it, its diagonal, and the range's far border:
-    # only convex features (ridges, peaks) can poke into a geom; elsewhere the surface
-    # points inside it are the plane pass's business. A ridge is tried at its point
-    # nearest B's centre and at both ends (a face of B meets it deepest at an end).
-    eps = 1.0e-6 * (dx + dy + size[2])
-    for k in range(9):
-      if (k == 4 or k == 6 or k == 8) and c < c1:
+    njob = wp.where(item < ncorner, 1, 2 * nlow)
+    for job in range(njob):
+      t = job // nlow  # the triangle: (p00, p10, p11) or (p00, p11, p01)
+      p = corner
+      if item < ncorner:
+        t = wp.where((corner[1] - p00[1]) / dy >= (corner[0] - p00[0]) / dx, 0, 1)  # above the diagonal: the first
+      n = wp.where(t == 0, na, nb)
+      if item >= ncorner and job % nlow == 0:
+        p = support_world(b, ms, -n, mode)
+      elif item >= ncorner:
+        p = _capsule_end(b, job % nlow - 1, n)
+      depth = _plane_depth(p, p00, wp.where(t == 0, p10, p11), wp.where(t == 0, p11, p01), n, band)
+      if depth > 0.0:
+        cands = add_candidate(cands, p + 0.5 * depth * n, n, depth, spacing)
+  # then the prisms and points, which skip what the face contacts already hold. Their MPRs
+  # run in batches: a lane first gathers up to JOB_BATCH MPR jobs that pass the cheap tests,
+  # then runs them, so the lanes of a warp run their MPRs side by side (one MPR call site,
+  # reached at different steps of a lane's cell loop, ran one lane's MPR at a time: 2/3 of
+  # the kernel's GPU time went to the prisms alone)
+  cursor = int(0)  # next (cell, job), as cell * NJOB + job
+  while cursor < ncell * NJOB:
+    batch = vec_jobs()
+    nbatch = int(0)
+    while cursor < ncell * NJOB and nbatch < JOB_BATCH:
+      r = r0 + (cursor // NJOB) // (c1 - c0 + 1)
+      c = c0 + (cursor // NJOB) % (c1 - c0 + 1)
+      p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+      job = cursor % NJOB
+      cursor = (cursor // NJOB + 1) * NJOB  # the next cell, unless the batch fills first
+      if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < lo[2]:
+        continue  # the geom is above this cell
+      # B's deepest point under each triangle's plane: where B stays above a plane (by more
+      # than the band), that triangle, its prism and the terrain features on it touch nothing
+      below_a = wp.dot(na, p00 - support_world(b, ms, -na, mode)) + band > 0.0
+      below_b = wp.dot(nb, p00 - support_world(b, ms, -nb, mode)) + band > 0.0
+      while job < NJOB and (below_a or below_b):
+        if nbatch == JOB_BATCH:
+          cursor = cursor - NJOB + job  # resume here
+          break
+        wanted = bool(False)
+        if (job == 0 and below_a) or (job == 1 and below_b):
+          wanted = not _outside_walls(b, ms, mode, p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01),
+                                      band, 3)
+        elif job >= 2:
+          k = (job - 2) // 3
+          on_a = k == 0 or k == 2 or k == 3 or k == 5 or k == 7 or k == 8  # see _feature
+          on_b = k == 0 or k == 1 or k == 3 or k == 4 or k == 6 or k == 8
+          if (below_a or not on_a) and (below_b or not on_b):
+            q, wanted = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, r1, c1, job, p00, p01, p10,
+                                       p11, b.center, eps)
+            if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
+              wanted = False
+            # most such points lie outside B: B's support toward the point, from its centre,
+            # shows that with one query instead of an MPR
+            out = q - b.center
+            if wanted and wp.length(out) > 0.0:
+              out = wp.normalize(out)
+              wanted = wp.dot(q - support_world(b, ms, out, mode), out) <= band
+        if wanted:
+          batch[nbatch] = (cursor // NJOB - 1) * NJOB + job
+          nbatch += 1
+        job += 1
+    for j in range(nbatch):
+      cell = batch[j] // NJOB
+      job = batch[j] % NJOB
+      r = r0 + cell // (c1 - c0 + 1)
+      c = c0 + cell % (c1 - c0 + 1)
+      p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+      n = wp.where(job == 0, na, nb)
+      a = _prism_shape(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -size[3], band)
+      if job >= 2:
+        q, _ = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, r1, c1, job, p00, p01, p10, p11,
+                              b.center, eps)
+        a = _point_shape(q, band)
+      res = mpr_refined(a, b, ms, mode, scale, tol, iterations, refine, RESTART_BEHIND)
+      if res.hit == 0 or res.depth <= 0.0:
         continue
-      if (k == 5 or k == 7 or k == 8) and r < r1:
-        continue
-      e0 = p00
-      e1 = p00
-      convex = bool(False)
-      if k == 0:
-        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, eps)
-      elif k == 1:
-        e1 = p01
-        other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
-        convex = r == 0 or _ridge(p00, p01, p11, other, eps)
-      elif k == 2:
-        e1 = p10
-        other = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
-        convex = c == 0 or _ridge(p00, p10, p11, other, eps)
-      elif k == 3:
-        e1 = p11
-        convex = _ridge(p00, p11, p10, p01, eps)
-      elif k == 4:
-        e0 = p01
-        e1 = p11
-        other = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
-        convex = c + 2 > ncol - 1 or _ridge(p01, p11, p00, other, eps)
-      elif k == 5:
-        e0 = p10
-        e1 = p11
-        other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
-        convex = r + 2 > nrow - 1 or _ridge(p10, p11, p00, other, eps)
-      elif k == 6:
-        e0 = p01
-        e1 = p01
-        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c + 1, eps)
-      elif k == 7:
-        e0 = p10
-        e1 = p10
-        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c, eps)
-      else:
-        e0 = p11
-        e1 = p11
-        convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c + 1, eps)
-      if not convex:
-        continue
-      cands = point_pass(cands, b, ms, mode, _closest_on_segment(e0, e1, b.center), lo, hi, na, nb, band, spacing,
-                         scale, tol, iterations, refine)
-      if k >= 1 and k <= 5:
-        cands = point_pass(cands, b, ms, mode, e0, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
-        cands = point_pass(cands, b, ms, mode, e1, lo, hi, na, nb, band, spacing, scale, tol, iterations, refine)
+      if job < 2:
+        if not _prism_answer_kept(cands, res, n, p00, scale, tol):
+          continue
+      elif wp.dot(res.normal, na + nb) <= 0.0:
+        continue  # B's surface normal must point away from the terrain
+      cands = add_candidate(cands, res.pos, res.normal, res.depth, spacing)
   return cands
 
 

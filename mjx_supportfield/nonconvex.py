@@ -165,67 +165,104 @@ def _segment_min(dst: Shape, dst_nonconvex: int, sdfs: SdfSet, p0: wp.vec3, p1: 
 
 
 @wp.func
-def vertex_pass(c: Candidates, src: Shape, src_nonconvex: int, dst: Shape, dst_nonconvex: int, sdfs: SdfSet,
-                ms: MeshSupport, mesh_vertnum: wp.array(dtype=int), mode: int, side: int, band: float,
-                spacing: float) -> Candidates:
-  """Points of src in dst's SDF (see the module doc)."""
-  out = c
-  if src.gtype == GeomType.SPHERE:
-    return _point(out, dst, dst_nonconvex, sdfs, src.pos, src.size[0], side, band, spacing)
-  if src.gtype == GeomType.CAPSULE:
-    axis = wp.vec3(src.rot[0, 2], src.rot[1, 2], src.rot[2, 2])
-    q = _segment_min(dst, dst_nonconvex, sdfs, src.pos - src.size[1] * axis, src.pos + src.size[1] * axis,
-                     _step(dst, dst_nonconvex, sdfs) * 4.0)
-    return _point(out, dst, dst_nonconvex, sdfs, q, src.size[0], side, band, spacing)
+def _samples(src: Shape, src_nonconvex: int, ms: MeshSupport, mesh_vertnum: wp.array(dtype=int),
+             mesh_facenum: wp.array(dtype=int), edges: int) -> int:
+  """How many samples of src a pass tries (see the module doc): edges = 0 the vertex pass, 1
+  the edge pass (3 a triangle of a non-convex mesh, of which each edge's second copy is
+  skipped)."""
+  if edges:
+    if src.gtype == GeomType.BOX:
+      return 12
+    if src.gtype == GeomType.MESH and src_nonconvex:
+      return 3 * mesh_facenum[src.mesh]
+    return 0
+  if src.gtype == GeomType.SPHERE or src.gtype == GeomType.CAPSULE:
+    return 1
   if src.gtype == GeomType.BOX:
-    for k in range(8):
-      out = _point(out, dst, dst_nonconvex, sdfs, box_corner(src, k), 0.0, side, band, spacing)
-    return out
+    return 8
   if src.gtype == GeomType.MESH:
     if src_nonconvex:
-      adr = ms.vertadr[src.mesh]
-      for k in range(mesh_vertnum[src.mesh]):
-        out = _point(out, dst, dst_nonconvex, sdfs, src.pos + src.rot @ ms.vert[adr + k], 0.0, side, band, spacing)
-    else:
-      for k in range(ms.hull_num[src.mesh]):  # the hull's vertices
-        out = _point(out, dst, dst_nonconvex, sdfs, sample_point(src, ms, mode, k), 0.0, side, band, spacing)
-    return out
-  for k in range(26):  # cylinder, ellipsoid: support points in the 26 grid directions
-    out = _point(out, dst, dst_nonconvex, sdfs, sample_point(src, ms, mode, k), 0.0, side, band, spacing)
-  return out
+      return mesh_vertnum[src.mesh]
+    return ms.hull_num[src.mesh]
+  return 26  # cylinder, ellipsoid: support points in the 26 grid directions
 
 
 @wp.func
-def edge_pass(c: Candidates, src: Shape, src_nonconvex: int, dst: Shape, dst_nonconvex: int, sdfs: SdfSet,
-              ms: MeshSupport, mesh_face: wp.array(dtype=wp.vec3i), mesh_faceadr: wp.array(dtype=int),
-              mesh_facenum: wp.array(dtype=int), side: int, band: float, spacing: float) -> Candidates:
-  """Deepest point of each edge of src (a non-convex mesh's triangles, a box's 12 edges) in dst's SDF."""
-  out = c
-  h = _step(dst, dst_nonconvex, sdfs) * 4.0
+def _sample(src: Shape, src_nonconvex: int, ms: MeshSupport, mesh_face: wp.array(dtype=wp.vec3i),
+            mesh_faceadr: wp.array(dtype=int), mode: int, edges: int,
+            k: int) -> tuple[wp.vec3, wp.vec3, float, bool]:
+  """Sample k of src for a pass (see _samples): a segment p0-p1 (its point deepest in the other
+  geom's SDF counts; p0 = p1 for a point), the radius around it, and whether it is one."""
+  if edges == 0:
+    if src.gtype == GeomType.SPHERE:
+      return src.pos, src.pos, src.size[0], True
+    if src.gtype == GeomType.CAPSULE:
+      axis = wp.vec3(src.rot[0, 2], src.rot[1, 2], src.rot[2, 2])
+      return src.pos - src.size[1] * axis, src.pos + src.size[1] * axis, src.size[0], True
+    p = wp.vec3(0.0)
+    if src.gtype == GeomType.BOX:
+      p = box_corner(src, k)
+    elif src.gtype == GeomType.MESH and src_nonconvex:
+      p = src.pos + src.rot @ ms.vert[ms.vertadr[src.mesh] + k]
+    else:
+      p = sample_point(src, ms, mode, k)  # a convex mesh's hull vertices, 26 support points
+    return p, p, 0.0, True
   if src.gtype == GeomType.BOX:
-    for e in range(12):
-      axis = e // 4  # edges along x, y, z: 4 each
-      k = e % 4
-      bits0 = wp.where(axis == 0, (k & 1) * 2 + (k & 2) * 2, wp.where(axis == 1, (k & 1) + (k & 2) * 2, (k & 1) + (k & 2)))
-      bits1 = bits0 + wp.where(axis == 0, 1, wp.where(axis == 1, 2, 4))
-      q = _segment_min(dst, dst_nonconvex, sdfs, box_corner(src, bits0), box_corner(src, bits1), h)
-      out = _point(out, dst, dst_nonconvex, sdfs, q, 0.0, side, band, spacing)
-    return out
-  if src.gtype != GeomType.MESH or src_nonconvex == 0:
-    return out
+    along = k // 4  # edges along x, y, z: 4 each
+    j = k % 4
+    bits0 = wp.where(along == 0, (j & 1) * 2 + (j & 2) * 2, wp.where(along == 1, (j & 1) + (j & 2) * 2, (j & 1) + (j & 2)))
+    bits1 = bits0 + wp.where(along == 0, 1, wp.where(along == 1, 2, 4))
+    return box_corner(src, bits0), box_corner(src, bits1), 0.0, True
+  tri = mesh_face[mesh_faceadr[src.mesh] + k // 3]
+  i0 = tri[k % 3]
+  i1 = tri[(k + 1) % 3]
   adr = ms.vertadr[src.mesh]
-  for f in range(mesh_facenum[src.mesh]):
-    tri = mesh_face[mesh_faceadr[src.mesh] + f]
-    for k in range(3):
-      i0 = tri[k]
-      i1 = tri[(k + 1) % 3]
-      if i0 > i1:
-        continue  # each edge of a closed mesh belongs to two triangles: take it once
-      p0 = src.pos + src.rot @ ms.vert[adr + i0]
-      p1 = src.pos + src.rot @ ms.vert[adr + i1]
-      q = _segment_min(dst, dst_nonconvex, sdfs, p0, p1, h)
-      out = _point(out, dst, dst_nonconvex, sdfs, q, 0.0, side, band, spacing)
-  return out
+  p0 = src.pos + src.rot @ ms.vert[adr + i0]
+  p1 = src.pos + src.rot @ ms.vert[adr + i1]
+  return p0, p1, 0.0, i0 < i1  # each edge of a closed mesh belongs to two triangles: take it once
+
+
+@wp.func
+def pair_candidates(a: Shape, nc1: int, b: Shape, nc2: int, sdfs: SdfSet, ms: MeshSupport,
+                    mesh_vertnum: wp.array(dtype=int), mesh_face: wp.array(dtype=wp.vec3i),
+                    mesh_faceadr: wp.array(dtype=int), mesh_facenum: wp.array(dtype=int), mode: int, band: float,
+                    spacing: float) -> Candidates:
+  """Contact candidates of a pair with a non-convex mesh: the vertex pass both ways (B's
+  samples in A's SDF, then A's in B's), then, when it found nothing, the edge pass both ways.
+
+  One loop with runtime bounds and one call site for the SDF point and the edge search:
+  unrolled (a box's 8 corners and 12 edges, 26 samples, four passes) the CUDA build of this
+  module ran for over 45 minutes."""
+  cands = empty()
+  stage = int(0)  # 2 x edges + side
+  k = int(0)
+  while stage < 4:
+    side = stage % 2
+    edges = stage // 2
+    src = b
+    src_nc = nc2
+    dst = a
+    dst_nc = nc1
+    if side == 1:
+      src = a
+      src_nc = nc1
+      dst = b
+      dst_nc = nc2
+    if stage == 2 and k == 0 and cands.n > 0:
+      break  # the vertex pass found contacts: no edge pass
+    if k >= _samples(src, src_nc, ms, mesh_vertnum, mesh_facenum, edges):
+      stage += 1
+      k = 0
+      continue
+    p0, p1, radius, valid = _sample(src, src_nc, ms, mesh_face, mesh_faceadr, mode, edges, k)
+    k += 1
+    if not valid:
+      continue
+    q = p0
+    if wp.length(p1 - p0) > 0.0:
+      q = _segment_min(dst, dst_nc, sdfs, p0, p1, _step(dst, dst_nc, sdfs) * 4.0)
+    cands = _point(cands, dst, dst_nc, sdfs, q, radius, side, band, spacing)
+  return cands
 
 
 @wp.kernel(enable_backward=False)
@@ -314,12 +351,8 @@ def nonconvex_narrowphase(
     band = wp.max(margin + gap, 0.0)
     ab = worldid % geom_aabb.shape[0]
     spacing = mc_tolerance * 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
-    cands = empty()
-    cands = vertex_pass(cands, b, nc2, a, nc1, sdfs, ms, mesh_vertnum, support_mode, 0, band, spacing)
-    cands = vertex_pass(cands, a, nc1, b, nc2, sdfs, ms, mesh_vertnum, support_mode, 1, band, spacing)
-    if cands.n == 0:
-      cands = edge_pass(cands, b, nc2, a, nc1, sdfs, ms, mesh_face, mesh_faceadr, mesh_facenum, 0, band, spacing)
-      cands = edge_pass(cands, a, nc1, b, nc2, sdfs, ms, mesh_face, mesh_faceadr, mesh_facenum, 1, band, spacing)
+    cands = pair_candidates(a, nc1, b, nc2, sdfs, ms, mesh_vertnum, mesh_face, mesh_faceadr, mesh_facenum,
+                            support_mode, band, spacing)
     write_candidates(
       cands, max_contacts, wp.identity(n=3, dtype=float), wp.vec3(0.0), band, naconmax_in, margin, gap, condim,
       friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,

@@ -4,13 +4,12 @@
 #
 #   setsid nohup benchmarks/gpu_session.sh RESULTS_DIR [SCENE ...] > RESULTS_DIR/log 2>&1 &
 #
-# 1. compiles every scene of run_suite.py in parallel processes (Warp's kernel cache; the
-#    terrain's compile goes on beside the next steps);
+# 1. compiles the scenes it will time in parallel processes (Warp's kernel cache);
 # 2. times the main scenes (aloha_pot, pile_32_128) with run_suite.py (MAIN=0 skips them);
 # 3. times the other scenes (or the SCENEs given), one run_suite.py call each;
 # 4. profiles the collision kernels inside 30 steps of the main scenes at 8192 worlds, stock and
 #    plugin variants (PROFILE_VARIANTS), and, with BASELINE=DIR (a directory holding another
-#    version of the mjx_supportfield package), that version's default too.
+#    version of the mjx_supportfield package), that version's default too (PROFILE=0 skips it).
 # Each step writes its files into RESULTS_DIR as it ends and touches RESULTS_DIR/<step>.done.
 set -uo pipefail
 out=${1:?results dir}
@@ -28,9 +27,9 @@ step() { echo "=== $(date +%T) $1"; }
 
 step compile
 python3 benchmarks/make_scenes.py
-# the terrain's first compile (stock's heightfield kernels) takes over 10 minutes: it goes on
-# beside the rest; the terrain waits for it
-python3 benchmarks/run_suite.py --compile-only --only terrain_32 > "$out/compile-terrain.log" 2>&1 &
+timed=()
+[ "${MAIN:-1}" != 0 ] && timed+=(aloha_pot pile_32_128)
+for scene in "${others[@]}"; do [ "$scene" != profile ] && timed+=("$scene"); done
 if [ -n "${BASELINE:-}" ]; then  # the baseline's own narrow-phase kernels, for the profile
   for scene in benchmarks/scenes/pile_32_128.xml "$aloha"; do
     PYTHONPATH="$BASELINE:${PYTHONPATH:-}" python3 benchmarks/profile_collision.py "$scene" --nworld 64 --steps 1 --no-stock
@@ -39,7 +38,7 @@ fi
 python3 -c "
 import sys; sys.path.insert(0, 'benchmarks')
 import run_suite
-print(run_suite.compile_all([s for s in run_suite.SCENES if s != 'terrain_32'], 8))"
+print(run_suite.compile_all(sys.argv[1:], 8))" "${timed[@]}"
 touch "$out/compile.done"
 
 if [ "${MAIN:-1}" != 0 ]; then
@@ -66,9 +65,11 @@ for scene in "${others[@]}"; do
     profile
     continue
   fi
-  [ "$scene" = terrain_32 ] && wait  # its compile
   python3 benchmarks/run_suite.py --only "$scene" --out "$out" --suffix="-$scene"
 done
 touch "$out/others.done"
-[[ " ${others[*]} " == *" profile "* ]] || { step profile; profile; }
+if [ "${PROFILE:-1}" != 0 ] && [[ " ${others[*]} " != *" profile "* ]]; then
+  step profile
+  profile
+fi
 step end

@@ -40,6 +40,7 @@ from mujoco_warp._src.types import vec5
 from mjx_supportfield.candidates import Candidates
 from mjx_supportfield.candidates import add_candidate
 from mjx_supportfield.candidates import empty
+from mjx_supportfield.candidates import row
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import mpr_refined
@@ -160,8 +161,7 @@ def _prism_answer_kept(c: Candidates, res: MprResult, n: wp.vec3, v0: wp.vec3, s
   if wp.dot(n, witness - v0) < -1.0e-6 * scale:
     return False
   for k in range(c.n):
-    normal = wp.vec3(c.normal[k, 0], c.normal[k, 1], c.normal[k, 2])
-    if wp.dot(normal, res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
+    if wp.dot(row(c.normal, k), res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
       return False
   return True
 

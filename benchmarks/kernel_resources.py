@@ -46,7 +46,9 @@ def kernels() -> dict:
     "tilt (closed form)": narrowphase.tilt_kernel,
     "tilt (MPR)": narrowphase.tilt_mpr_kernel,
     "patch (multi-contact)": narrowphase.patch_kernel,
-    "heightfield": heightfield.hfield_narrowphase,
+    "heightfield jobs": heightfield.hfield_jobs,
+    "heightfield MPR": heightfield.hfield_mpr,
+    "heightfield contacts": heightfield.hfield_contacts,
     "non-convex (SDF)": nonconvex.nonconvex_narrowphase,
   }
 

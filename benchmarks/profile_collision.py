@@ -11,8 +11,8 @@ reported as the rest (solver, kinematics, ...), with the mean solver iterations.
 
 A variant is ``default`` or Options fields as ``key=value;key=value`` (Python literals), e.g.
 ``multi_contact=False;mpr_refine=0``. One more key, ``max_registers=N``, rebuilds the MPR, GJK,
-tilt and patch kernels with at most N registers a thread instead of narrowphase.HEAVY_REGISTERS
-(Warp's ``cuda_max_registers``; 255 lifts the cap) for that variant.
+tilt, patch and heightfield MPR kernels with at most N registers a thread instead of
+narrowphase.HEAVY_REGISTERS (Warp's ``cuda_max_registers``; 255 lifts the cap) for that variant.
 """
 
 import argparse
@@ -25,6 +25,7 @@ import mujoco
 import mujoco_warp as mjw
 import warp as wp
 
+from mjx_supportfield import heightfield
 from mjx_supportfield import narrowphase
 from mjx_supportfield.bench import settled_state
 from mjx_supportfield.install import install
@@ -48,6 +49,7 @@ def _register_cap(cap):
     return
   names = ("convex_kernel", "tilt_kernel", "tilt_mpr_kernel", "patch_kernel")
   saved = {name: getattr(narrowphase, name) for name in names}
+  saved_hfield_mpr = heightfield.hfield_mpr
 
   def capped(kernel):
     return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
@@ -56,11 +58,13 @@ def _register_cap(cap):
   narrowphase.tilt_kernel = capped(saved["tilt_kernel"])
   narrowphase.tilt_mpr_kernel = capped(saved["tilt_mpr_kernel"])
   narrowphase.patch_kernel = capped(saved["patch_kernel"])
+  heightfield.hfield_mpr = capped(saved_hfield_mpr)
   try:
     yield
   finally:
     for name, kernel in saved.items():
       setattr(narrowphase, name, kernel)
+    heightfield.hfield_mpr = saved_hfield_mpr
 
 
 def main():

@@ -71,6 +71,11 @@ class DataState:
   tilt_result: wp.array  # (queued pairs, 8) the tilts' points, both attempts
   tilt_count: wp.array  # tilts queued for MPR (narrowphase.tilt_mpr_kernel)
   tilt_queue: wp.array  # their flat indices into tilt_result
+  hfield_count: wp.array  # heightfield pairs, terrain MPRs, those beyond the queue (heightfield.hfield_jobs)
+  hfield_pair: wp.array  # (pairs) heightfield.TerrainPair
+  hfield_job: wp.array  # (MPRs) the MPR queue: (index into hfield_pair, cell * NJOB + job)
+  hfield_answer: wp.array  # (MPRs) each MPR's point and depth
+  hfield_normal: wp.array  # (MPRs) and normal
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the broad phase
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
@@ -105,6 +110,7 @@ def start_collision(
   queue_count: wp.array(dtype=int),
   patch_count: wp.array(dtype=int),
   tilt_count: wp.array(dtype=int),
+  hfield_count: wp.array(dtype=int),
   warm_stamp: wp.array(dtype=int),
   warm_misses: wp.array(dtype=int),
 ):
@@ -125,6 +131,8 @@ def start_collision(
   tilt_count[0] = 0
   for q in range(queue_count.shape[0]):
     queue_count[q] = 0
+  for k in range(hfield_count.shape[0]):
+    hfield_count[k] = 0
   if not incremental:
     nacon[0] = 0
   if warm_start:
@@ -174,6 +182,8 @@ class Collider:
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       nmpr = int((queue_table[t1 * narrowphase.NGEOMTYPE + t2] == narrowphase.QUEUE_MPR).sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
+      nhfield = int(((t1 == GeomType.HFIELD) & np.isin(t2, [int(t) for t in CONVEX_TYPES])).sum())
+      self.hfield_pairs_per_world = min(nhfield, self.max_pairs)  # bounds the heightfield kernels' pairs
       # non-convex meshes: their own triangles' SDFs
       ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
       nonconvex.warn_open_meshes(mjm, ncgeoms)
@@ -240,6 +250,8 @@ class Collider:
     # the sweep's per-world slots; nxn lists pairs directly (aloha_pot: 2 x 268 MB saved at 8192 worlds)
     nslot = 1 if self.nxn else capacity
     ntilt_pair = min(capacity, nworld * _TILT_PAIRS_PER_WORLD)
+    nhfield_pair = max(1, nworld * self.hfield_pairs_per_world)
+    nhfield_mpr = nhfield_pair * self.options.hfield_mprs_per_pair if self.hfield_pairs_per_world else 1
     with wp.ScopedDevice(self.device):
       st = DataState(
         aabb_lo=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
@@ -274,6 +286,11 @@ class Collider:
         tilt_result=wp.zeros((ntilt_pair, 2 * narrowphase.NPERTURB), dtype=wp.vec4),
         tilt_count=wp.zeros(1, dtype=int),
         tilt_queue=wp.zeros(ntilt_pair * 2 * narrowphase.NPERTURB, dtype=int),
+        hfield_count=wp.zeros(3, dtype=int),
+        hfield_pair=wp.zeros(nhfield_pair, dtype=heightfield.TerrainPair),
+        hfield_job=wp.zeros(nhfield_mpr, dtype=wp.vec2i),
+        hfield_answer=wp.zeros(nhfield_mpr, dtype=wp.vec4),
+        hfield_normal=wp.zeros(nhfield_mpr, dtype=wp.vec3),
         pair_outputs=broadphase.PairOutputs(),
         queues=narrowphase.PairQueues(),
       )
@@ -312,7 +329,7 @@ class Collider:
       dim=d.nworld,
       inputs=[incremental, warm],
       outputs=[d.ncollision, d.nacon, st.ndropped, st.nonfinite, st.world_npair, st.npair, st.nwarned, st.queue_count,
-               st.patch_count, st.tilt_count, st.warm.stamp, st.warm.misses],
+               st.patch_count, st.tilt_count, st.hfield_count, st.warm.stamp, st.warm.misses],
     )
 
     self._broadphase(m, d, st, awake_prev)
@@ -484,21 +501,7 @@ class Collider:
         outputs=self._contact_outputs(d),
       )
     if self.has_hfield_pairs:
-      wp.launch(
-        heightfield.hfield_narrowphase,
-        dim=nthread,
-        inputs=[
-          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.hfield_size,
-          m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data, m.pair_dim, m.pair_solref, m.pair_solreffriction,
-          m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction,
-          int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD))), d.geom_xpos, d.geom_xmat, d.naconmax,
-          self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance,
-          self.options.mpr_iterations, self.options.mpr_refine, self.options.max_contacts_per_pair,
-          self.options.mc_tolerance,
-        ] + pair_inputs,
-        outputs=[d.overflow] + self._contact_outputs(d),
-      )
+      self._heightfield(m, d, st, nthread)
     if self.has_nonconvex_pairs:
       wp.launch(
         nonconvex.nonconvex_narrowphase,
@@ -517,6 +520,46 @@ class Collider:
       # SDF geoms and collision-sensor pairs: MuJoCo Warp's own narrow phase
       collision_driver._narrowphase(m, d, st.stock_ctx)
 
+  def _heightfield(self, m, d, st: DataState, nthread: int):
+    """Heightfield - convex pairs: windows and MPR queue, the queued MPRs, then the contacts."""
+    mode = SUPPORT_MODE_ID[self.options.support_mode]
+    warn = int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD)))
+    hfield = [m.hfield_size, m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data]
+    wp.launch(
+      heightfield.hfield_jobs,
+      dim=nthread,
+      inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_margin, m.geom_gap] + hfield
+      + [m.pair_margin, m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, mode, st.npair, st.pair,
+         st.pairid, st.pair_worldid, 2, nthread],
+      outputs=[d.overflow, st.hfield_count, st.hfield_pair, st.hfield_job],
+    )
+    nthread_mpr = max(1, min(st.hfield_job.shape[0], _GRID_THREADS))
+    wp.launch(
+      heightfield.hfield_mpr,
+      dim=nthread_mpr,
+      inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
+      + [d.geom_xpos, d.geom_xmat, self.mesh_support, mode, self.options.mpr_tolerance, self.options.mpr_iterations,
+         self.options.mpr_refine, st.pair, st.pair_worldid, st.hfield_count, st.hfield_pair, st.hfield_job,
+         nthread_mpr],
+      outputs=[st.hfield_answer, st.hfield_normal],
+    )
+    nthread_pair = max(1, min(st.hfield_pair.shape[0], _GRID_THREADS))
+    wp.launch(
+      heightfield.hfield_contacts,
+      dim=nthread_pair,
+      inputs=[
+        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+        m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
+        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
+        m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, mode,
+        self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mpr_refine,
+        self.options.max_contacts_per_pair, self.options.mc_tolerance, st.pair, st.pairid,
+        st.pair_worldid, st.hfield_count, st.hfield_pair, st.hfield_job, st.hfield_answer, st.hfield_normal,
+        nthread_pair,
+      ],
+      outputs=[d.overflow] + self._contact_outputs(d),
+    )
+
   # --- diagnostics --------------------------------------------------------------------
 
   def stats(self, d) -> dict:
@@ -525,12 +568,15 @@ class Collider:
     With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
     ``dropped_contacts`` counts the contacts beyond ``d.naconmax`` (all worlds together).
     ``warm_start_misses`` counts the pairs whose warm-started MPR missed and ran again cold.
+    ``hfield_mprs_unqueued`` counts the terrain MPRs the heightfield queue had no room for: they
+    ran one after another in their pair's thread (the same contacts, slower; see
+    ``Options.hfield_mprs_per_pair``).
     """
     states = getattr(d, _STATE_ATTR, None)
     st = states.get(self) if states is not None else None
     if st is None:
       return {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
-              "dropped_contacts": 0, "warm_start_misses": 0}
+              "dropped_contacts": 0, "warm_start_misses": 0, "hfield_mprs_unqueued": 0}
     return {
       "pairs": int(st.npair.numpy()[0]),
       "pairs_per_world": np.minimum(st.world_npair.numpy(), self.max_pairs).tolist(),
@@ -539,4 +585,6 @@ class Collider:
       # contacts found beyond d.naconmax (not stored; mjw.step flags OverflowType.NARROWPHASE)
       "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
       "warm_start_misses": int(st.warm.misses.numpy()[0]) if self.options.warm_start else 0,
+      # terrain MPRs that found the heightfield queue full and ran in their pair's thread
+      "hfield_mprs_unqueued": int(st.hfield_count.numpy()[2]),
     }

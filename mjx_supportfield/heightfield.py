@@ -21,9 +21,13 @@ give contact candidates in three passes:
   the geom's centre and its ends, that lie inside the geom; MPR of that point against the
   geom gives depth and normal (the geom's surface normal). This catches ridges and peaks
   poking into a geom, which no triangle's plane sees.
-The prism and point MPRs run in batches after cheap tests (B above the triangle's plane,
-outside a prism's side wall, a point outside B by one support query), so that the lanes of a
-warp run their MPRs side by side.
+Three kernels: hfield_jobs finds each pair's cells and its prism and point MPRs that pass
+cheap tests (B above the triangle's plane, outside a prism's side wall, a point outside B by
+one support query) and queues them; hfield_mpr runs the queued MPRs, one thread each, so that a
+warp's lanes all run MPRs side by side (one thread a pair ran its ten or so one after another,
+beside lanes that had none); hfield_contacts, one thread a pair, adds the plane pass and the
+MPR answers in job order. MPRs that find the queue full (``Options.hfield_mprs_per_pair``) run
+in hfield_contacts instead: the same contacts, slower.
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
 points farthest from those already chosen are written, up to ``max_contacts``. A geom over
@@ -32,6 +36,7 @@ more than MAX_CELLS cells keeps the cells nearest its centre and sets ``Overflow
 """
 
 import warp as wp
+from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
@@ -44,6 +49,7 @@ from mjx_supportfield.candidates import row
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.narrowphase import HEAVY_REGISTERS
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.support import box_corner
 from mjx_supportfield.support import hull_point
@@ -60,9 +66,9 @@ RESTART_BEHIND = 0.0
 
 
 NFEATURE = 9  # terrain features a cell owns for the point pass (see _feature)
-NJOB = 2 + 3 * NFEATURE  # a cell's second-pass jobs: two prisms, then up to three points per feature
-JOB_BATCH = 16  # MPR jobs a lane gathers before running them
-vec_jobs = wp.types.vector(length=JOB_BATCH, dtype=int)
+NJOB = 2 + 3 * NFEATURE  # a cell's MPR jobs: two prisms, then up to three points per feature
+KEPT_CELLS = 16  # cells with jobs whose job masks hfield_jobs keeps from its counting sweep
+vec_kept = wp.types.vector(length=KEPT_CELLS, dtype=int)
 
 
 @wp.func
@@ -308,29 +314,67 @@ def _axis(k: int) -> wp.vec3:
   return wp.vec3(wp.where(k == 0, 1.0, 0.0), wp.where(k == 1, 1.0, 0.0), wp.where(k == 2, 1.0, 0.0))
 
 
+
+@wp.struct
+class TerrainPair:
+  """A heightfield - convex pair with cells under the geom, as hfield_jobs leaves it for the MPR
+  and contact kernels."""
+
+  cid: int  # index into the pair list
+  window: wp.vec4i  # the cells visited: rows r0 ... r1, columns c0 ... c1
+  lo: wp.vec3  # B's bounds in the terrain frame, grown by band
+  hi: wp.vec3
+  band: float  # margin + gap
+  cut: int  # 1 when B covers more than MAX_CELLS cells (only those around its centre are visited)
+  job_total: int  # the pair's MPR jobs (those that pass the cheap tests)
+  job_start: int  # the first job_count of them, in order, are jobs job_start ... of the MPR queue
+  job_count: int
+
+
 @wp.func
-def terrain_candidates(
-  hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape, ms: MeshSupport,
-  mode: int, band: float, spacing: float, tol: float, iterations: int, refine: int
-) -> Candidates:
-  """Contact candidates of geom B (posed in the terrain frame) against the terrain."""
-  cands = empty()
-  lo = wp.vec3(0.0)
-  hi = wp.vec3(0.0)
+def _terrain_pair(
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  ms: MeshSupport,
+  geoms: wp.vec2i,
+  worldid: int,
+) -> tuple[Shape, Shape, int]:
+  """The terrain (world frame), geom B posed in the terrain's frame, and the heightfield's id."""
+  terrain = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
+  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
+  rt = wp.transpose(terrain.rot)
+  b.pos = rt @ (b.pos - terrain.pos)
+  b.center = rt @ (b.center - terrain.pos)
+  b.rot = rt @ b.rot
+  return terrain, b, geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
+
+
+@wp.func
+def _window(b: Shape, ms: MeshSupport, mode: int, band: float, nrow: int, ncol: int, size: wp.vec4) -> TerrainPair:
+  """The cells under B (its bounds grown by band), at most MAX_CELLS around its centre; an
+  empty window (r0 > r1) when B is off the terrain or above or below it."""
+  tp = TerrainPair()
+  tp.band = band
+  tp.cut = 0
+  tp.job_total = 0
+  tp.job_start = 0
+  tp.job_count = 0
   for k in range(3):
-    hi[k] = support_world(b, ms, _axis(k), mode)[k] + band
-    lo[k] = support_world(b, ms, -_axis(k), mode)[k] - band
+    tp.hi[k] = support_world(b, ms, _axis(k), mode)[k] + band
+    tp.lo[k] = support_world(b, ms, -_axis(k), mode)[k] - band
   dx = 2.0 * size[0] / float(ncol - 1)
   dy = 2.0 * size[1] / float(nrow - 1)
-  c0 = wp.max(0, int(wp.floor((lo[0] + size[0]) / dx)))
-  c1 = wp.min(ncol - 2, int(wp.floor((hi[0] + size[0]) / dx)))
-  r0 = wp.max(0, int(wp.floor((lo[1] + size[1]) / dy)))
-  r1 = wp.min(nrow - 2, int(wp.floor((hi[1] + size[1]) / dy)))
-  if c0 > c1 or r0 > r1 or lo[2] > size[2] or hi[2] < -size[3]:
-    return cands
-  if (c1 - c0 + 1) * (r1 - r0 + 1) > MAX_CELLS:
-    # keep the window of cells around the geom's centre
-    cands.cut = 1
+  c0 = wp.max(0, int(wp.floor((tp.lo[0] + size[0]) / dx)))
+  c1 = wp.min(ncol - 2, int(wp.floor((tp.hi[0] + size[0]) / dx)))
+  r0 = wp.max(0, int(wp.floor((tp.lo[1] + size[1]) / dy)))
+  r1 = wp.min(nrow - 2, int(wp.floor((tp.hi[1] + size[1]) / dy)))
+  if tp.lo[2] > size[2] or tp.hi[2] < -size[3]:
+    r1 = r0 - 1
+  if c0 <= c1 and r0 <= r1 and (c1 - c0 + 1) * (r1 - r0 + 1) > MAX_CELLS:
+    tp.cut = 1
     half = wp.static(int(MAX_CELLS**0.5) // 2)
     cc = int(wp.floor((b.center[0] + size[0]) / dx))
     rc = int(wp.floor((b.center[1] + size[1]) / dy))
@@ -338,17 +382,118 @@ def terrain_candidates(
     c1 = wp.min(c1, cc + half - 1)
     r0 = wp.max(r0, rc - half)
     r1 = wp.min(r1, rc + half - 1)
-  scale = wp.length(hi - lo) + dx + dy
+  tp.window = wp.vec4i(r0, r1, c0, c1)
+  return tp
+
+
+@wp.func
+def _window_cell(tp: TerrainPair, cell: int) -> tuple[int, int]:
+  """Grid row and column of the window's cell number ``cell`` (numbered along its rows)."""
+  ncols = tp.window[3] - tp.window[2] + 1
+  return tp.window[0] + cell // ncols, tp.window[2] + cell % ncols
+
+
+@wp.func
+def _scale(tp: TerrainPair, dx: float, dy: float) -> float:
+  """The pair's length scale (MPR's tolerances are relative to it)."""
+  return wp.length(tp.hi - tp.lo) + dx + dy
+
+
+@wp.func
+def _cell_jobs(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
+               ms: MeshSupport, mode: int, tp: TerrainPair, cell: int) -> int:
+  """The MPR jobs of a window cell that pass the cheap tests, as a bit mask over its NJOB jobs:
+  0, 1 the prisms of its two triangles, 2 + 3 k + end feature k's points (_feature_point)."""
+  dx = 2.0 * size[0] / float(ncol - 1)
+  dy = 2.0 * size[1] / float(nrow - 1)
   eps = 1.0e-6 * (dx + dy + size[2])
+  band = tp.band
+  r, c = _window_cell(tp, cell)
+  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+  if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < tp.lo[2]:
+    return 0  # the geom is above this cell
+  # B's deepest point under each triangle's plane: where B stays above a plane (by more than the
+  # band), that triangle, its prism and the terrain features on it touch nothing
+  below_a = wp.dot(na, p00 - support_world(b, ms, -na, mode)) + band > 0.0
+  below_b = wp.dot(nb, p00 - support_world(b, ms, -nb, mode)) + band > 0.0
+  mask = int(0)
+  job = int(0)
+  while job < NJOB and (below_a or below_b):
+    wanted = bool(False)
+    if (job == 0 and below_a) or (job == 1 and below_b):
+      wanted = not _outside_walls(b, ms, mode, p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), band,
+                                  3)
+    elif job >= 2:
+      k = (job - 2) // 3
+      on_a = k == 0 or k == 2 or k == 3 or k == 5 or k == 7 or k == 8  # see _feature
+      on_b = k == 0 or k == 1 or k == 3 or k == 4 or k == 6 or k == 8
+      if (below_a or not on_a) and (below_b or not on_b):
+        q, wanted = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job,
+                                   p00, p01, p10, p11, b.center, eps)
+        lo = tp.lo
+        hi = tp.hi
+        if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
+          wanted = False
+        # most such points lie outside B: B's support toward the point, from its centre, shows
+        # that with one query instead of an MPR
+        out = q - b.center
+        if wanted and wp.length(out) > 0.0:
+          out = wp.normalize(out)
+          wanted = wp.dot(q - support_world(b, ms, out, mode), out) <= band
+    if wanted:
+      mask = mask | (1 << job)
+    job += 1
+  return mask
+
+
+@wp.func
+def _job_shape(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
+               tp: TerrainPair, code: int) -> Shape:
+  """The terrain part of MPR job ``code`` (cell * NJOB + job): a triangle's prism or a point."""
+  dx = 2.0 * size[0] / float(ncol - 1)
+  dy = 2.0 * size[1] / float(nrow - 1)
+  eps = 1.0e-6 * (dx + dy + size[2])
+  job = code % NJOB
+  r, c = _window_cell(tp, code // NJOB)
+  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+  if job >= 2:
+    q, convex = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job, p00, p01,
+                          p10, p11, b.center, eps)
+    return _point_shape(q, tp.band)
+  return _prism_shape(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -size[3], tp.band)
+
+
+@wp.func
+def _job_mpr(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
+             ms: MeshSupport, mode: int, tp: TerrainPair, code: int, tolerance: float, iterations: int,
+             refine: int) -> tuple[wp.vec4, wp.vec3]:
+  """MPR job ``code``'s answer: the contact point and depth (0 when it found none), and the normal."""
+  a = _job_shape(hfield_data, adr, nrow, ncol, size, b, tp, code)
+  scale = _scale(tp, 2.0 * size[0] / float(ncol - 1), 2.0 * size[1] / float(nrow - 1))
+  res = mpr_refined(a, b, ms, mode, scale, tolerance, iterations, refine, RESTART_BEHIND)
+  depth = wp.where(res.hit != 0 and res.depth > 0.0, res.depth, 0.0)
+  return wp.vec4(res.pos[0], res.pos[1], res.pos[2], depth), res.normal
+
+
+@wp.func
+def _plane_pass(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
+                ms: MeshSupport, mode: int, tp: TerrainPair, spacing: float) -> Candidates:
+  """The face contacts: B's corners against the triangle under each, then each cell's
+  triangles against B's deepest points (and a capsule's ends)."""
+  cands = empty()
+  band = tp.band
+  r0 = tp.window[0]
+  r1 = tp.window[1]
+  c0 = tp.window[2]
+  c1 = tp.window[3]
+  dx = 2.0 * size[0] / float(ncol - 1)
+  dy = 2.0 * size[1] / float(nrow - 1)
   ncell = (r1 - r0 + 1) * (c1 - c0 + 1)
   ncorner = _corners(b, ms)
   nlow = wp.where(b.gtype == GeomType.CAPSULE, 3, 1)  # plane jobs a triangle: B's deepest point, a capsule's ends
-  # the plane pass (face contacts) first: B's corners against the triangle under each, then
-  # each cell's triangles against B's deepest points
   for item in range(ncorner + ncell):
     corner = wp.vec3(0.0)
-    r = r0 + (item - ncorner) // (c1 - c0 + 1)
-    c = c0 + (item - ncorner) % (c1 - c0 + 1)
+    r, c = _window_cell(tp, item - ncorner)
     if item < ncorner:
       corner = _corner(b, ms, item)
       c = int(wp.floor((corner[0] + size[0]) / dx))
@@ -356,7 +501,7 @@ def terrain_candidates(
       if c < c0 or c > c1 or r < r0 or r > r1:
         continue
     p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-    if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < lo[2]:
+    if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < tp.lo[2]:
       continue  # the geom is above this cell
     njob = wp.where(item < ncorner, 1, 2 * nlow)
     for job in range(njob):
@@ -372,80 +517,207 @@ def terrain_candidates(
       depth = _plane_depth(p, p00, wp.where(t == 0, p10, p11), wp.where(t == 0, p11, p01), n, band)
       if depth > 0.0:
         cands = add_candidate(cands, p + 0.5 * depth * n, n, depth, spacing)
-  # then the prisms and points, which skip what the face contacts already hold. Their MPRs
-  # run in batches: a lane first gathers up to JOB_BATCH MPR jobs that pass the cheap tests,
-  # then runs them, so the lanes of a warp run their MPRs side by side (one MPR call site,
-  # reached at different steps of a lane's cell loop, ran one lane's MPR at a time: 2/3 of
-  # the kernel's GPU time went to the prisms alone)
-  cursor = int(0)  # next (cell, job), as cell * NJOB + job
-  while cursor < ncell * NJOB:
-    batch = vec_jobs()
-    nbatch = int(0)
-    while cursor < ncell * NJOB and nbatch < JOB_BATCH:
-      r = r0 + (cursor // NJOB) // (c1 - c0 + 1)
-      c = c0 + (cursor // NJOB) % (c1 - c0 + 1)
-      p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-      job = cursor % NJOB
-      cursor = (cursor // NJOB + 1) * NJOB  # the next cell, unless the batch fills first
-      if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < lo[2]:
-        continue  # the geom is above this cell
-      # B's deepest point under each triangle's plane: where B stays above a plane (by more
-      # than the band), that triangle, its prism and the terrain features on it touch nothing
-      below_a = wp.dot(na, p00 - support_world(b, ms, -na, mode)) + band > 0.0
-      below_b = wp.dot(nb, p00 - support_world(b, ms, -nb, mode)) + band > 0.0
-      while job < NJOB and (below_a or below_b):
-        if nbatch == JOB_BATCH:
-          cursor = cursor - NJOB + job  # resume here
-          break
-        wanted = bool(False)
-        if (job == 0 and below_a) or (job == 1 and below_b):
-          wanted = not _outside_walls(b, ms, mode, p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01),
-                                      band, 3)
-        elif job >= 2:
-          k = (job - 2) // 3
-          on_a = k == 0 or k == 2 or k == 3 or k == 5 or k == 7 or k == 8  # see _feature
-          on_b = k == 0 or k == 1 or k == 3 or k == 4 or k == 6 or k == 8
-          if (below_a or not on_a) and (below_b or not on_b):
-            q, wanted = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, r1, c1, job, p00, p01, p10,
-                                       p11, b.center, eps)
-            if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
-              wanted = False
-            # most such points lie outside B: B's support toward the point, from its centre,
-            # shows that with one query instead of an MPR
-            out = q - b.center
-            if wanted and wp.length(out) > 0.0:
-              out = wp.normalize(out)
-              wanted = wp.dot(q - support_world(b, ms, out, mode), out) <= band
-        if wanted:
-          batch[nbatch] = (cursor // NJOB - 1) * NJOB + job
-          nbatch += 1
-        job += 1
-    for j in range(nbatch):
-      cell = batch[j] // NJOB
-      job = batch[j] % NJOB
-      r = r0 + cell // (c1 - c0 + 1)
-      c = c0 + cell % (c1 - c0 + 1)
-      p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-      n = wp.where(job == 0, na, nb)
-      a = _prism_shape(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -size[3], band)
-      if job >= 2:
-        q, _ = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, r1, c1, job, p00, p01, p10, p11,
-                              b.center, eps)
-        a = _point_shape(q, band)
-      res = mpr_refined(a, b, ms, mode, scale, tol, iterations, refine, RESTART_BEHIND)
-      if res.hit == 0 or res.depth <= 0.0:
-        continue
-      if job < 2:
-        if not _prism_answer_kept(cands, res, n, p00, scale, tol):
-          continue
-      elif wp.dot(res.normal, na + nb) <= 0.0:
-        continue  # B's surface normal must point away from the terrain
-      cands = add_candidate(cands, res.pos, res.normal, res.depth, spacing)
   return cands
 
 
+@wp.func
+def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4,
+                    tp: TerrainPair, cands: Candidates, code: int, answer: wp.vec4, normal: wp.vec3, spacing: float,
+                    tol: float) -> Candidates:
+  """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to the
+  candidates, unless it is a prism's answer through a side wall or one the face contacts
+  already hold (_prism_answer_kept), or a point's with a normal into the terrain."""
+  if answer[3] <= 0.0:
+    return cands
+  dx = 2.0 * size[0] / float(ncol - 1)
+  dy = 2.0 * size[1] / float(nrow - 1)
+  job = code % NJOB
+  r, c = _window_cell(tp, code // NJOB)
+  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+  res = MprResult()
+  res.hit = 1
+  res.depth = answer[3]
+  res.pos = wp.vec3(answer[0], answer[1], answer[2])
+  res.normal = normal
+  if job < 2:
+    if not _prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol):
+      return cands
+  elif wp.dot(normal, na + nb) <= 0.0:
+    return cands  # B's surface normal must point away from the terrain
+  return add_candidate(cands, res.pos, normal, res.depth, spacing)
+
+
+@wp.func
+def _bits(mask: int) -> int:
+  """How many bits of mask are set."""
+  n = int(0)
+  m = mask
+  while m != 0:
+    m = m & (m - 1)
+    n += 1
+  return n
+
+
+@wp.func
+def _queue_cell(job_out: wp.array(dtype=wp.vec2i), slot: int, tp: TerrainPair, cell: int, mask: int, n: int) -> int:
+  """Queues the jobs in a cell's mask as the pair's jobs n, n + 1, ... (those that fit in its
+  share of the queue); returns the next n."""
+  out = n
+  job = int(0)
+  while job < NJOB:
+    if ((mask >> job) & 1) == 1:
+      if out < tp.job_count:
+        job_out[tp.job_start + out] = wp.vec2i(slot, cell * NJOB + job)
+      out += 1
+    job += 1
+  return out
+
+
 @wp.kernel(enable_backward=False)
-def hfield_narrowphase(
+def hfield_jobs(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  hfield_size: wp.array(dtype=wp.vec4),
+  hfield_nrow: wp.array(dtype=int),
+  hfield_ncol: wp.array(dtype=int),
+  hfield_adr: wp.array(dtype=int),
+  hfield_data: wp.array(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  npair_in: wp.array(dtype=int),
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  nsweep: int,
+  nthread: int,
+  # Out:
+  overflow_out: wp.array(dtype=int),
+  hfield_count_out: wp.array(dtype=int),
+  hfield_pair_out: wp.array(dtype=TerrainPair),
+  hfield_job_out: wp.array(dtype=wp.vec2i),
+):
+  """First of the heightfield kernels: each heightfield - convex pair's window of cells, and its
+  MPR jobs (prisms and terrain points that pass the cheap tests), queued in cell order so that
+  hfield_mpr runs them on dense warps. hfield_count_out counts the pairs, the jobs asked for,
+  and those that found the queue full (hfield_contacts runs them in the pair's thread)."""
+  tid = wp.tid()
+  for cid in range(tid, npair_in[0], nthread):
+    geoms = pair_in[cid]
+    if geom_type[geoms[0]] != GeomType.HFIELD or geom_type[geoms[1]] == GeomType.HFIELD or (
+        geom_type[geoms[1]] == GeomType.PLANE):
+      continue
+    worldid = pair_worldid_in[cid]
+    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
+    _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
+    nrow = hfield_nrow[hf]
+    ncol = hfield_ncol[hf]
+    size = hfield_size[hf]
+    adr = hfield_adr[hf]
+    tp = _window(b, ms, support_mode, wp.max(margin + gap, 0.0), nrow, ncol, size)
+    if tp.window[0] > tp.window[1] or tp.window[2] > tp.window[3]:
+      continue
+    slot = wp.atomic_add(hfield_count_out, 0, 1)
+    if slot >= hfield_pair_out.shape[0]:  # the slots are as many as a world's heightfield pairs can be
+      wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
+      continue
+    tp.cid = cid
+    ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
+    # two sweeps over the cells (nsweep = 2, an argument so that the loop is not unrolled): the
+    # first counts the jobs, keeping the first KEPT_CELLS cells' masks, the second queues the
+    # jobs of the cells beyond those (only for pairs with more cells that have jobs)
+    kept_cell = vec_kept()
+    kept_mask = vec_kept()
+    nkept = int(0)
+    n = int(0)  # jobs counted (first sweep), then queued
+    for sweep in range(nsweep):
+      cell = int(0)
+      if sweep == 1:
+        if nkept < KEPT_CELLS or n >= tp.job_count:
+          break  # every cell with jobs was kept, or the pair's share of the queue is full
+        cell = kept_cell[KEPT_CELLS - 1] + 1
+      while cell < ncell:
+        mask = _cell_jobs(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell)
+        if mask != 0:
+          if sweep == 1:
+            n = _queue_cell(hfield_job_out, slot, tp, cell, mask, n)
+          elif nkept < KEPT_CELLS:
+            kept_cell[nkept] = cell
+            kept_mask[nkept] = mask
+            nkept += 1
+          else:
+            n += _bits(mask)
+        cell += 1
+      if sweep == 0:
+        for i in range(nkept):
+          n += _bits(kept_mask[i])
+        tp.job_total = n
+        tp.job_start = wp.atomic_add(hfield_count_out, 1, n)
+        tp.job_count = wp.max(0, wp.min(n, hfield_job_out.shape[0] - tp.job_start))
+        if tp.job_count < n:  # no room in the queue: the rest run in hfield_contacts
+          wp.atomic_add(hfield_count_out, 2, n - tp.job_count)
+        n = int(0)
+        for i in range(nkept):
+          n = _queue_cell(hfield_job_out, slot, tp, kept_cell[i], kept_mask[i], n)
+    hfield_pair_out[slot] = tp
+
+
+@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+def hfield_mpr(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  hfield_size: wp.array(dtype=wp.vec4),
+  hfield_nrow: wp.array(dtype=int),
+  hfield_ncol: wp.array(dtype=int),
+  hfield_adr: wp.array(dtype=int),
+  hfield_data: wp.array(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  tolerance: float,
+  iterations: int,
+  refine: int,
+  pair_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  hfield_count_in: wp.array(dtype=int),
+  hfield_pair_in: wp.array(dtype=TerrainPair),
+  hfield_job_in: wp.array(dtype=wp.vec2i),
+  nthread: int,
+  # Out:
+  answer_out: wp.array(dtype=wp.vec4),
+  normal_out: wp.array(dtype=wp.vec3),
+):
+  """The queued terrain MPRs, one thread a job: the contact point and depth (0: none) and the
+  normal, for hfield_contacts."""
+  tid = wp.tid()
+  for j in range(tid, wp.min(hfield_count_in[1], hfield_job_in.shape[0]), nthread):
+    job = hfield_job_in[j]
+    tp = hfield_pair_in[job[0]]
+    worldid = pair_worldid_in[tp.cid]
+    _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, pair_in[tp.cid],
+                             worldid)
+    answer, normal = _job_mpr(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
+                              support_mode, tp, job[1], tolerance, iterations, refine)
+    answer_out[j] = answer
+    normal_out[j] = normal
+
+
+@wp.kernel(enable_backward=False)
+def hfield_contacts(
   # Model:
   geom_type: wp.array(dtype=int),
   geom_condim: wp.array(dtype=int),
@@ -486,10 +758,14 @@ def hfield_narrowphase(
   refine: int,
   max_contacts: int,
   mc_tolerance: float,
-  npair_in: wp.array(dtype=int),
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
+  hfield_count_in: wp.array(dtype=int),
+  hfield_pair_in: wp.array(dtype=TerrainPair),
+  hfield_job_in: wp.array(dtype=wp.vec2i),
+  answer_in: wp.array(dtype=wp.vec4),
+  normal_in: wp.array(dtype=wp.vec3),
   nthread: int,
   # Data out:
   overflow_out: wp.array(dtype=int),
@@ -510,40 +786,58 @@ def hfield_narrowphase(
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
 ):
-  """Contacts of heightfield - convex pairs (heightfield first, as MuJoCo orders them)."""
+  """Last of the heightfield kernels, one thread a pair of hfield_jobs: the face contacts and
+  its MPR answers in job order (running those the queue had no room for), merged
+  (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
   tid = wp.tid()
-  for cid in range(tid, npair_in[0], nthread):
+  for slot in range(tid, wp.min(hfield_count_in[0], hfield_pair_in.shape[0]), nthread):
+    tp = hfield_pair_in[slot]
+    cid = tp.cid
     geoms = pair_in[cid]
-    g1 = geoms[0]
-    g2 = geoms[1]
-    if geom_type[g1] != GeomType.HFIELD or geom_type[g2] == GeomType.HFIELD or geom_type[g2] == GeomType.PLANE:
-      continue
     worldid = pair_worldid_in[cid]
     _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
       geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
       geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
       pair_friction, pair_in, pairid_in, cid, worldid,
     )
-    terrain = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
-    b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
-    # B in the terrain frame
-    rt = wp.transpose(terrain.rot)
-    b.pos = rt @ (b.pos - terrain.pos)
-    b.center = rt @ (b.center - terrain.pos)
-    b.rot = rt @ b.rot
-    hf = geom_dataid[worldid % geom_dataid.shape[0], g1]
-    band = wp.max(margin + gap, 0.0)
-    ab = worldid % geom_aabb.shape[0]
-    spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[ab, g2, 1])
-    cands = terrain_candidates(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
-                               support_mode, band, spacing, tolerance, iterations, refine)
-    if cands.cut:
+    terrain, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
+    nrow = hfield_nrow[hf]
+    ncol = hfield_ncol[hf]
+    size = hfield_size[hf]
+    adr = hfield_adr[hf]
+    spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
+    cands = _plane_pass(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, spacing)
+    for j in range(tp.job_start, tp.job_start + tp.job_count):
+      cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, cands, hfield_job_in[j][1], answer_in[j],
+                              normal_in[j], spacing, tolerance)
+    # the jobs the queue had no room for, in order after the queued ones
+    code = int(0)
+    if tp.job_count > 0:
+      code = hfield_job_in[tp.job_start + tp.job_count - 1][1] + 1
+    left = tp.job_total - tp.job_count
+    ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
+    while left > 0 and code < ncell * NJOB:
+      cell = code // NJOB
+      mask = _cell_jobs(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell)
+      mask = (mask >> (code % NJOB)) << (code % NJOB)  # the cell's jobs from code on
+      job = int(0)
+      while mask != 0:
+        if (mask & 1) == 1:
+          answer, normal = _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
+                                    tolerance, iterations, refine)
+          cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, cands, cell * NJOB + job, answer, normal,
+                                  spacing, tolerance)
+          left -= 1
+        mask = mask >> 1
+        job += 1
+      code = (cell + 1) * NJOB
+    if tp.cut:
       wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
       if opt_warn_hfield:
         wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
-                  "cells around its centre are used\n", g2, MAX_CELLS, worldid)
+                  "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
     write_candidates(
-      cands, max_contacts, terrain.rot, terrain.pos, band, naconmax_in, margin, gap, condim, friction, solref,
+      cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
       solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,
       contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,

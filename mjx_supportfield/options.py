@@ -50,6 +50,12 @@ class Options:
       the mesh) instead of MuJoCo's convex hull; also read from the MJCF custom text
       ``mjx_supportfield.nonconvex`` (names separated by spaces).
     nonconvex_sdf_res: cells along the longest side of a non-convex mesh's baked SDF.
+    hfield_mprs_per_pair: room in the terrain MPR queue per heightfield pair, on average over
+      all worlds. A heightfield pair's MPRs (the triangle prisms and
+      terrain points that pass the cheap tests: about 10 for a geom over a few cells, a few
+      hundred over a hundred cells) run side by side from this queue; those that find it full
+      run one after another in the pair's own thread: the same contacts, slower (counted in
+      the collider's stats as ``hfield_mprs_unqueued``).
   """
 
   support_res: int = 180
@@ -70,6 +76,7 @@ class Options:
   warm_start: bool = True
   nonconvex_geoms: tuple = ()
   nonconvex_sdf_res: int = 64
+  hfield_mprs_per_pair: int = 16
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)
@@ -93,6 +100,7 @@ class Options:
     _check_float("mpr_to_sdf_overlap_ratio", self.mpr_to_sdf_overlap_ratio, 0.0, 100.0)
     _check_int("sdf_res", self.sdf_res, 8, 256)
     _check_int("nonconvex_sdf_res", self.nonconvex_sdf_res, 8, 512)
+    _check_int("hfield_mprs_per_pair", self.hfield_mprs_per_pair, 1, 4096)
     names = self.nonconvex_geoms
     if isinstance(names, str) or not isinstance(names, (tuple, list)) or not all(isinstance(n, str) for n in names):
       raise ValueError(f"Options.nonconvex_geoms: expected a list of geom names, got {names!r}")

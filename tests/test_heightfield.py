@@ -159,3 +159,22 @@ def test_geom_over_too_many_cells_reports_overflow(capfd):
   assert c.n >= 1
   np.testing.assert_allclose(c.dist, -0.001, atol=1e-5)
   np.testing.assert_allclose(c.normal[:, 2], 1.0, atol=1e-6)
+
+
+def test_full_mpr_queue_gives_the_same_contacts(dropped):
+  """Terrain MPRs that find their queue full run in their pair's thread: the bodies of
+  models/terrain.xml at rest on its bumps (hundreds of MPRs for the geoms over many cells) get
+  the same contacts with room for one MPR a pair as with room for all; the stats count them."""
+  qpos = dropped[0].d.qpos.numpy()[0]
+  found = {}
+  for room in (4096, 1):
+    sim = load("terrain", qpos=qpos)
+    sf.install(sim.mjm, sim.m, sf.Options(hfield_mprs_per_pair=room))
+    sf.collision(sim.m, sim.d)
+    found[room] = contacts(sim.d, 0), sf.get_collider(sim.m).stats(sim.d)["hfield_mprs_unqueued"]
+  (roomy, roomy_unqueued), (tight, tight_unqueued) = found[4096], found[1]
+  assert roomy_unqueued == 0 and tight_unqueued > 100
+  assert roomy.n == tight.n >= len(make_terrain.BODIES)
+  np.testing.assert_array_equal(roomy.pos, tight.pos)
+  np.testing.assert_array_equal(roomy.dist, tight.dist)
+  np.testing.assert_array_equal(roomy.frame, tight.frame)

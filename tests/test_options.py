@@ -65,6 +65,9 @@ INVALID = [
   ("sap_axis", 3),
   ("sap_axis", -1),
   ("sap_axis", 0.0),
+  ("hfield_mprs_per_pair", 0),
+  ("hfield_mprs_per_pair", 16.0),
+  ("hfield_mprs_per_pair", 5000),
 ]
 
 
@@ -81,6 +84,8 @@ def test_boundaries_accepted():
   Options(support_res=4096)
   Options(mpr_tolerance=1e-12)
   Options(mpr_tolerance=1e-2)
+  Options(hfield_mprs_per_pair=1)
+  Options(hfield_mprs_per_pair=4096)
 
 
 def test_from_dict():

@@ -71,9 +71,11 @@ class DataState:
   tilt_result: wp.array  # (queued pairs, 8) the tilts' points, both attempts
   tilt_count: wp.array  # tilts queued for MPR (narrowphase.tilt_mpr_kernel)
   tilt_queue: wp.array  # their flat indices into tilt_result
-  hfield_count: wp.array  # heightfield pairs, terrain MPRs, those beyond the queue (heightfield.hfield_jobs)
+  hfield_count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind (heightfield.COUNT_*)
   hfield_pair: wp.array  # (pairs) heightfield.TerrainPair
   hfield_job: wp.array  # (MPRs) the MPR queue: (index into hfield_pair, cell * NJOB + job)
+  hfield_kind_next: wp.array  # (heightfield.NKIND) next place of each kind of job in hfield_order
+  hfield_order: wp.array  # (MPRs) the queue's jobs grouped by kind, the order hfield_mpr runs them in
   hfield_answer: wp.array  # (MPRs) each MPR's point and depth
   hfield_normal: wp.array  # (MPRs) and normal
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the broad phase
@@ -286,7 +288,9 @@ class Collider:
         tilt_result=wp.zeros((ntilt_pair, 2 * narrowphase.NPERTURB), dtype=wp.vec4),
         tilt_count=wp.zeros(1, dtype=int),
         tilt_queue=wp.zeros(ntilt_pair * 2 * narrowphase.NPERTURB, dtype=int),
-        hfield_count=wp.zeros(3, dtype=int),
+        hfield_count=wp.zeros(heightfield.COUNT_KIND + heightfield.NKIND, dtype=int),
+        hfield_kind_next=wp.zeros(heightfield.NKIND, dtype=int),
+        hfield_order=wp.zeros(nhfield_mpr, dtype=int),
         hfield_pair=wp.zeros(nhfield_pair, dtype=heightfield.TerrainPair),
         hfield_job=wp.zeros(nhfield_mpr, dtype=wp.vec2i),
         hfield_answer=wp.zeros(nhfield_mpr, dtype=wp.vec4),
@@ -521,7 +525,8 @@ class Collider:
       collision_driver._narrowphase(m, d, st.stock_ctx)
 
   def _heightfield(self, m, d, st: DataState, nthread: int):
-    """Heightfield - convex pairs: windows and MPR queue, the queued MPRs, then the contacts."""
+    """Heightfield - convex pairs: windows and MPR queue, the queue grouped by kind, the queued
+    MPRs, then the contacts."""
     mode = SUPPORT_MODE_ID[self.options.support_mode]
     warn = int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD)))
     hfield = [m.hfield_size, m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data]
@@ -533,6 +538,14 @@ class Collider:
          st.pairid, st.pair_worldid, 2, nthread],
       outputs=[d.overflow, st.hfield_count, st.hfield_pair, st.hfield_job],
     )
+    nthread_pair = max(1, min(st.hfield_pair.shape[0], _GRID_THREADS))
+    wp.launch(heightfield.hfield_kind_start, dim=1, inputs=[st.hfield_count], outputs=[st.hfield_kind_next])
+    wp.launch(
+      heightfield.hfield_order,
+      dim=nthread_pair,
+      inputs=[m.geom_type, st.pair, st.hfield_count, st.hfield_pair, st.hfield_job, nthread_pair],
+      outputs=[st.hfield_kind_next, st.hfield_order],
+    )
     nthread_mpr = max(1, min(st.hfield_job.shape[0], _GRID_THREADS))
     wp.launch(
       heightfield.hfield_mpr,
@@ -540,10 +553,9 @@ class Collider:
       inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
       + [d.geom_xpos, d.geom_xmat, self.mesh_support, mode, self.options.mpr_tolerance, self.options.mpr_iterations,
          self.options.mpr_refine, st.pair, st.pair_worldid, st.hfield_count, st.hfield_pair, st.hfield_job,
-         nthread_mpr],
+         st.hfield_order, nthread_mpr],
       outputs=[st.hfield_answer, st.hfield_normal],
     )
-    nthread_pair = max(1, min(st.hfield_pair.shape[0], _GRID_THREADS))
     wp.launch(
       heightfield.hfield_contacts,
       dim=nthread_pair,
@@ -586,5 +598,5 @@ class Collider:
       "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
       "warm_start_misses": int(st.warm.misses.numpy()[0]) if self.options.warm_start else 0,
       # terrain MPRs that found the heightfield queue full and ran in their pair's thread
-      "hfield_mprs_unqueued": int(st.hfield_count.numpy()[2]),
+      "hfield_mprs_unqueued": int(st.hfield_count.numpy()[heightfield.COUNT_UNQUEUED]),
     }

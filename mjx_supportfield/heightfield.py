@@ -50,6 +50,7 @@ from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
+from mjx_supportfield.narrowphase import NGEOMTYPE
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.support import box_corner
 from mjx_supportfield.support import hull_point
@@ -69,6 +70,10 @@ NFEATURE = 9  # terrain features a cell owns for the point pass (see _feature)
 NJOB = 2 + 3 * NFEATURE  # a cell's MPR jobs: two prisms, then up to three points per feature
 KEPT_CELLS = 16  # cells with jobs whose job masks hfield_jobs keeps from its counting sweep
 vec_kept = wp.types.vector(length=KEPT_CELLS, dtype=int)
+# hfield_mpr runs the queued jobs grouped by kind: geom B's type, and prism or point, so that a
+# warp's lanes take the same branches of the support functions
+NKIND = 2 * NGEOMTYPE
+COUNT_PAIRS, COUNT_JOBS, COUNT_UNQUEUED, COUNT_KIND = 0, 1, 2, 3  # hfield_count: then NKIND counts
 
 
 @wp.func
@@ -329,6 +334,7 @@ class TerrainPair:
   job_total: int  # the pair's MPR jobs (those that pass the cheap tests)
   job_start: int  # the first job_count of them, in order, are jobs job_start ... of the MPR queue
   job_count: int
+  nprism: int  # how many of those are prisms (hfield_order groups them apart from the points)
 
 
 @wp.func
@@ -362,6 +368,7 @@ def _window(b: Shape, ms: MeshSupport, mode: int, band: float, nrow: int, ncol: 
   tp.job_total = 0
   tp.job_start = 0
   tp.job_count = 0
+  tp.nprism = 0
   for k in range(3):
     tp.hi[k] = support_world(b, ms, _axis(k), mode)[k] + band
     tp.lo[k] = support_world(b, ms, -_axis(k), mode)[k] - band
@@ -626,7 +633,7 @@ def hfield_jobs(
     tp = _window(b, ms, support_mode, wp.max(margin + gap, 0.0), nrow, ncol, size)
     if tp.window[0] > tp.window[1] or tp.window[2] > tp.window[3]:
       continue
-    slot = wp.atomic_add(hfield_count_out, 0, 1)
+    slot = wp.atomic_add(hfield_count_out, COUNT_PAIRS, 1)
     if slot >= hfield_pair_out.shape[0]:  # the slots are as many as a world's heightfield pairs can be
       wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
       continue
@@ -661,14 +668,65 @@ def hfield_jobs(
         for i in range(nkept):
           n += _bits(kept_mask[i])
         tp.job_total = n
-        tp.job_start = wp.atomic_add(hfield_count_out, 1, n)
+        tp.job_start = wp.atomic_add(hfield_count_out, COUNT_JOBS, n)
         tp.job_count = wp.max(0, wp.min(n, hfield_job_out.shape[0] - tp.job_start))
         if tp.job_count < n:  # no room in the queue: the rest run in hfield_contacts
-          wp.atomic_add(hfield_count_out, 2, n - tp.job_count)
+          wp.atomic_add(hfield_count_out, COUNT_UNQUEUED, n - tp.job_count)
         n = int(0)
         for i in range(nkept):
           n = _queue_cell(hfield_job_out, slot, tp, kept_cell[i], kept_mask[i], n)
+    for j in range(tp.job_start, tp.job_start + tp.job_count):
+      if hfield_job_out[j][1] % NJOB < 2:
+        tp.nprism += 1
+    kind = COUNT_KIND + 2 * geom_type[geoms[1]]
+    wp.atomic_add(hfield_count_out, kind, tp.nprism)
+    wp.atomic_add(hfield_count_out, kind + 1, tp.job_count - tp.nprism)
     hfield_pair_out[slot] = tp
+
+
+@wp.kernel(enable_backward=False)
+def hfield_kind_start(
+  # In:
+  hfield_count_in: wp.array(dtype=int),
+  # Out:
+  kind_next_out: wp.array(dtype=int),
+):
+  """Where each kind of job starts in hfield_order (one thread): the counts' running sum."""
+  start = int(0)
+  for kind in range(NKIND):
+    kind_next_out[kind] = start
+    start += hfield_count_in[COUNT_KIND + kind]
+
+
+@wp.kernel(enable_backward=False)
+def hfield_order(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  # In:
+  pair_in: wp.array(dtype=wp.vec2i),
+  hfield_count_in: wp.array(dtype=int),
+  hfield_pair_in: wp.array(dtype=TerrainPair),
+  hfield_job_in: wp.array(dtype=wp.vec2i),
+  nthread: int,
+  # Out:
+  kind_next_out: wp.array(dtype=int),
+  order_out: wp.array(dtype=int),
+):
+  """The queued jobs grouped by kind (one thread a pair): each pair's prisms, then its points,
+  go to the next places of their kinds in order_out, so hfield_mpr's warps run jobs of one kind."""
+  tid = wp.tid()
+  for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
+    tp = hfield_pair_in[slot]
+    kind = 2 * geom_type[pair_in[tp.cid][1]]
+    prism = wp.atomic_add(kind_next_out, kind, tp.nprism)
+    point = wp.atomic_add(kind_next_out, kind + 1, tp.job_count - tp.nprism)
+    for j in range(tp.job_start, tp.job_start + tp.job_count):
+      if hfield_job_in[j][1] % NJOB < 2:
+        order_out[prism] = j
+        prism += 1
+      else:
+        order_out[point] = j
+        point += 1
 
 
 @wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
@@ -696,15 +754,17 @@ def hfield_mpr(
   hfield_count_in: wp.array(dtype=int),
   hfield_pair_in: wp.array(dtype=TerrainPair),
   hfield_job_in: wp.array(dtype=wp.vec2i),
+  order_in: wp.array(dtype=int),
   nthread: int,
   # Out:
   answer_out: wp.array(dtype=wp.vec4),
   normal_out: wp.array(dtype=wp.vec3),
 ):
-  """The queued terrain MPRs, one thread a job: the contact point and depth (0: none) and the
-  normal, for hfield_contacts."""
+  """The queued terrain MPRs, one thread a job in hfield_order's order: the contact point and
+  depth (0: none) and the normal, for hfield_contacts."""
   tid = wp.tid()
-  for j in range(tid, wp.min(hfield_count_in[1], hfield_job_in.shape[0]), nthread):
+  for i in range(tid, wp.min(hfield_count_in[COUNT_JOBS], hfield_job_in.shape[0]), nthread):
+    j = order_in[i]
     job = hfield_job_in[j]
     tp = hfield_pair_in[job[0]]
     worldid = pair_worldid_in[tp.cid]
@@ -790,7 +850,7 @@ def hfield_contacts(
   its MPR answers in job order (running those the queue had no room for), merged
   (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
   tid = wp.tid()
-  for slot in range(tid, wp.min(hfield_count_in[0], hfield_pair_in.shape[0]), nthread):
+  for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
     tp = hfield_pair_in[slot]
     cid = tp.cid
     geoms = pair_in[cid]

@@ -319,6 +319,11 @@ def _axis(k: int) -> wp.vec3:
   return wp.vec3(wp.where(k == 0, 1.0, 0.0), wp.where(k == 1, 1.0, 0.0), wp.where(k == 2, 1.0, 0.0))
 
 
+@wp.func
+def _cell_size(size: wp.vec4, nrow: int, ncol: int) -> tuple[float, float]:
+  """A grid cell's width dx (along x, the columns) and depth dy (along y, the rows)."""
+  return 2.0 * size[0] / float(ncol - 1), 2.0 * size[1] / float(nrow - 1)
+
 
 @wp.struct
 class TerrainPair:
@@ -372,8 +377,7 @@ def _window(b: Shape, ms: MeshSupport, mode: int, band: float, nrow: int, ncol: 
   for k in range(3):
     tp.hi[k] = support_world(b, ms, _axis(k), mode)[k] + band
     tp.lo[k] = support_world(b, ms, -_axis(k), mode)[k] - band
-  dx = 2.0 * size[0] / float(ncol - 1)
-  dy = 2.0 * size[1] / float(nrow - 1)
+  dx, dy = _cell_size(size, nrow, ncol)
   c0 = wp.max(0, int(wp.floor((tp.lo[0] + size[0]) / dx)))
   c1 = wp.min(ncol - 2, int(wp.floor((tp.hi[0] + size[0]) / dx)))
   r0 = wp.max(0, int(wp.floor((tp.lo[1] + size[1]) / dy)))
@@ -401,6 +405,12 @@ def _window_cell(tp: TerrainPair, cell: int) -> tuple[int, int]:
 
 
 @wp.func
+def _above_cell(tp: TerrainPair, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3) -> bool:
+  """Whether B (grown by the band) stays above the cell's highest corner: nothing there to touch."""
+  return wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + tp.band < tp.lo[2]
+
+
+@wp.func
 def _scale(tp: TerrainPair, dx: float, dy: float) -> float:
   """The pair's length scale (MPR's tolerances are relative to it)."""
   return wp.length(tp.hi - tp.lo) + dx + dy
@@ -411,14 +421,13 @@ def _cell_jobs(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: in
                ms: MeshSupport, mode: int, tp: TerrainPair, cell: int) -> int:
   """The MPR jobs of a window cell that pass the cheap tests, as a bit mask over its NJOB jobs:
   0, 1 the prisms of its two triangles, 2 + 3 k + end feature k's points (_feature_point)."""
-  dx = 2.0 * size[0] / float(ncol - 1)
-  dy = 2.0 * size[1] / float(nrow - 1)
+  dx, dy = _cell_size(size, nrow, ncol)
   eps = 1.0e-6 * (dx + dy + size[2])
   band = tp.band
   r, c = _window_cell(tp, cell)
   p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-  if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < tp.lo[2]:
-    return 0  # the geom is above this cell
+  if _above_cell(tp, p00, p01, p10, p11):
+    return 0
   # B's deepest point under each triangle's plane: where B stays above a plane (by more than the
   # band), that triangle, its prism and the terrain features on it touch nothing
   below_a = wp.dot(na, p00 - support_world(b, ms, -na, mode)) + band > 0.0
@@ -457,8 +466,7 @@ def _cell_jobs(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: in
 def _job_shape(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
                tp: TerrainPair, code: int) -> Shape:
   """The terrain part of MPR job ``code`` (cell * NJOB + job): a triangle's prism or a point."""
-  dx = 2.0 * size[0] / float(ncol - 1)
-  dy = 2.0 * size[1] / float(nrow - 1)
+  dx, dy = _cell_size(size, nrow, ncol)
   eps = 1.0e-6 * (dx + dy + size[2])
   job = code % NJOB
   r, c = _window_cell(tp, code // NJOB)
@@ -476,7 +484,8 @@ def _job_mpr(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
              refine: int) -> tuple[wp.vec4, wp.vec3]:
   """MPR job ``code``'s answer: the contact point and depth (0 when it found none), and the normal."""
   a = _job_shape(hfield_data, adr, nrow, ncol, size, b, tp, code)
-  scale = _scale(tp, 2.0 * size[0] / float(ncol - 1), 2.0 * size[1] / float(nrow - 1))
+  dx, dy = _cell_size(size, nrow, ncol)
+  scale = _scale(tp, dx, dy)
   res = mpr_refined(a, b, ms, mode, scale, tolerance, iterations, refine, RESTART_BEHIND)
   depth = wp.where(res.hit != 0 and res.depth > 0.0, res.depth, 0.0)
   return wp.vec4(res.pos[0], res.pos[1], res.pos[2], depth), res.normal
@@ -493,8 +502,7 @@ def _plane_pass(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: i
   r1 = tp.window[1]
   c0 = tp.window[2]
   c1 = tp.window[3]
-  dx = 2.0 * size[0] / float(ncol - 1)
-  dy = 2.0 * size[1] / float(nrow - 1)
+  dx, dy = _cell_size(size, nrow, ncol)
   ncell = (r1 - r0 + 1) * (c1 - c0 + 1)
   ncorner = _corners(b, ms)
   nlow = wp.where(b.gtype == GeomType.CAPSULE, 3, 1)  # plane jobs a triangle: B's deepest point, a capsule's ends
@@ -508,8 +516,8 @@ def _plane_pass(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: i
       if c < c0 or c > c1 or r < r0 or r > r1:
         continue
     p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-    if wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + band < tp.lo[2]:
-      continue  # the geom is above this cell
+    if _above_cell(tp, p00, p01, p10, p11):
+      continue
     njob = wp.where(item < ncorner, 1, 2 * nlow)
     for job in range(njob):
       t = job // nlow  # the triangle: (p00, p10, p11) or (p00, p11, p01)
@@ -536,8 +544,7 @@ def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, nco
   already hold (_prism_answer_kept), or a point's with a normal into the terrain."""
   if answer[3] <= 0.0:
     return cands
-  dx = 2.0 * size[0] / float(ncol - 1)
-  dy = 2.0 * size[1] / float(nrow - 1)
+  dx, dy = _cell_size(size, nrow, ncol)
   job = code % NJOB
   r, c = _window_cell(tp, code // NJOB)
   p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)

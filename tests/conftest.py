@@ -10,6 +10,7 @@ import sys
 import types
 
 import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MODELS = os.path.join(ROOT, "models")
@@ -26,6 +27,34 @@ import mujoco  # noqa: E402
 import mujoco_warp as mjw  # noqa: E402
 
 HAS_CUDA = wp.get_cuda_device_count() > 0
+# the device the suite runs on: CPU unless asked (CI has no GPU; the GPU lane passes --device cuda)
+DEVICE_ENV = "MJX_SF_TEST_DEVICE"
+
+
+def pytest_addoption(parser):
+  parser.addoption(
+    "--device",
+    default=os.environ.get(DEVICE_ENV, "cpu"),
+    help=f"Warp device the tests run on: cpu (default) or cuda / cuda:N (also ${DEVICE_ENV})",
+  )
+
+
+def pytest_configure(config):
+  device = config.getoption("--device")
+  if device.startswith("cuda") and not HAS_CUDA:
+    raise pytest.UsageError(f"--device {device}: Warp finds no CUDA device on this machine")
+  wp.set_device(device)
+
+
+def pytest_report_header(config):
+  device = wp.get_device()
+  name = device.name if device.is_cuda else "cpu"
+  return f"mjx_supportfield tests on Warp device {device.alias} ({name})"
+
+
+def on_gpu() -> bool:
+  """Whether the suite runs on a CUDA device (--device cuda)."""
+  return wp.get_device().is_cuda
 
 
 def model_path(name: str) -> str:

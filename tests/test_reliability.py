@@ -16,7 +16,7 @@ from mujoco_warp._src.types import DeterminismType
 from mujoco_warp._src.types import OverflowType
 
 import mjx_supportfield as sf
-from conftest import HAS_CUDA
+from conftest import on_gpu
 from conftest import angle_deg
 from conftest import contact_table
 from conftest import contacts
@@ -573,7 +573,7 @@ def test_graph_capture_deterministic_contacts():
   The states are fed in rather than stepped to: MuJoCo Warp's own step is not bitwise
   repeatable on a GPU (benchmarks/determinism.py measured qpos 1e-7 apart after one step on an
   H200, stock and plugin alike), so trajectories part ways for reasons outside the plugin."""
-  nworld = 64 if HAS_CUDA else 4
+  nworld = 64 if on_gpu() else 4
   with wp.ScopedDevice(wp.get_device()):
     sim = load("convex_pile", nworld=nworld)
     m = sim.m

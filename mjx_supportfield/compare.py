@@ -25,6 +25,7 @@ import mujoco
 import mujoco_warp as mjw
 import numpy as np
 import warp as wp
+from mujoco_warp._src.types import OverflowType
 
 from mjx_supportfield import exact
 from mjx_supportfield.install import collision as plugin_collision
@@ -99,11 +100,39 @@ def warp_contacts(mjm: mujoco.MjModel, states: list[np.ndarray], nworld: Optiona
   World w holds state w % len(states); nworld defaults to one world per state.
   """
   nworld = nworld or len(states)
+  qpos = np.stack([states[w % len(states)] for w in range(nworld)]).astype(np.float32)
+  nconmax = max(64, 4 * mjm.ngeom)
+  d, n = _collide(mjm, qpos, plugin, nconmax)
+  if _overflowed(d, n):  # MuJoCo Warp counts what it had no room for: rerun with room for all
+    need = max(n, int(d.ncollision.numpy()[0]))
+    d, n = _collide(mjm, qpos, plugin, max(2 * nconmax, -(-need // nworld) + nconmax))
+  if _overflowed(d, n):
+    flags = int(np.bitwise_or.reduce(d.overflow.numpy()))
+    names = [t.name for t in OverflowType if t.value and t.name != "ALL" and flags & t.value]
+    raise RuntimeError(f"warp_contacts: buffers overflowed ({', '.join(names) or 'contacts'}) after a rerun with "
+                       f"room for {d.naconmax} contacts; with the plugin, raise Options.max_collision_pairs")
+  c = d.contact
+  geom, dist, pos = c.geom.numpy()[:n], c.dist.numpy()[:n], c.pos.numpy()[:n]
+  frame, world = c.frame.numpy()[:n], c.worldid.numpy()[:n]
+  out = [[] for _ in range(nworld)]
+  for i in range(n):
+    out[world[i]].append(Contact((int(geom[i][0]), int(geom[i][1])), float(dist[i]), pos[i], frame[i][0]))
+  return out
+
+
+def _overflowed(d, n: int) -> bool:
+  """Whether a collision pass dropped pairs or contacts for want of room (stock MuJoCo Warp
+  counts the broad phase's pairs past its room in d.ncollision)."""
+  return n > d.naconmax or int(d.ncollision.numpy()[0]) > d.naconmax or bool(d.overflow.numpy().any())
+
+
+def _collide(mjm: mujoco.MjModel, qpos: np.ndarray, plugin: Optional[Options], nconmax: int):
+  """MuJoCo Warp's Data after collision at the given qpos (one world a row) and the number of
+  contacts it found (more than d.naconmax when they did not fit)."""
   m = mjw.put_model(mjm)
   if plugin is not None:
     install(mjm, m, plugin)
-  d = mjw.make_data(mjm, nworld=nworld, nconmax=max(64, 4 * mjm.ngeom))
-  qpos = np.stack([states[w % len(states)] for w in range(nworld)]).astype(np.float32)
+  d = mjw.make_data(mjm, nworld=len(qpos), nconmax=nconmax)
   wp.copy(d.qpos, wp.array(qpos, dtype=float, device=d.qpos.device))
   mjw.kinematics(m, d)
   if plugin is not None:
@@ -112,14 +141,7 @@ def warp_contacts(mjm: mujoco.MjModel, states: list[np.ndarray], nworld: Optiona
   else:
     mjw.collision(m, d)
   wp.synchronize()
-  n = min(int(d.nacon.numpy()[0]), d.naconmax)
-  c = d.contact
-  geom, dist, pos = c.geom.numpy()[:n], c.dist.numpy()[:n], c.pos.numpy()[:n]
-  frame, world = c.frame.numpy()[:n], c.worldid.numpy()[:n]
-  out = [[] for _ in range(nworld)]
-  for i in range(n):
-    out[world[i]].append(Contact((int(geom[i][0]), int(geom[i][1])), float(dist[i]), pos[i], frame[i][0]))
-  return out
+  return d, int(d.nacon.numpy()[0])
 
 
 def _deepest_by_pair(contacts: list[Contact]) -> dict:

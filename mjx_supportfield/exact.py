@@ -274,6 +274,12 @@ def ellipsoid_distance(radii: np.ndarray, p: np.ndarray) -> float:
   return float(np.linalg.norm(p - nearest))
 
 
+def hfield_elevations(mjm: mujoco.MjModel, hid: int) -> np.ndarray:
+  """Heightfield hid's elevation data in [0, 1], (nrow, ncol), row r at y = -size[1] + r dy."""
+  nrow, ncol, adr = int(mjm.hfield_nrow[hid]), int(mjm.hfield_ncol[hid]), int(mjm.hfield_adr[hid])
+  return np.asarray(mjm.hfield_data[adr : adr + nrow * ncol], dtype=np.float64).reshape(nrow, ncol)
+
+
 def hfield_prisms(mjm: mujoco.MjModel, hid: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
   """The prisms of cells rows r0..r1-1, columns c0..c1-1 of heightfield hid: (nprism, 6, 3),
   top triangle then its base, in the geom frame.
@@ -283,8 +289,8 @@ def hfield_prisms(mjm: mujoco.MjModel, hid: int, r0: int, r1: int, c0: int, c1: 
   (r, c + 1)}; x along columns, y along rows, z = data * size[2], base at z = -size[3].
   """
   size = mjm.hfield_size[hid].astype(np.float64)
-  nrow, ncol, adr = int(mjm.hfield_nrow[hid]), int(mjm.hfield_ncol[hid]), int(mjm.hfield_adr[hid])
-  data = np.asarray(mjm.hfield_data[adr : adr + nrow * ncol], dtype=np.float64).reshape(nrow, ncol)
+  nrow, ncol = int(mjm.hfield_nrow[hid]), int(mjm.hfield_ncol[hid])
+  data = _cached(mjm, ("hfield", hid), lambda: hfield_elevations(mjm, hid))
   dx, dy = 2.0 * size[0] / (ncol - 1), 2.0 * size[1] / (nrow - 1)
   r, c = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
   r, c = r.ravel(), c.ravel()

@@ -270,3 +270,21 @@ def test_hull_distance_is_the_support_function_bound():
     dist = exact.distance_outside(mjm, g, xpos, xmat, p)
     bound = max((dirs @ p - h).max(), 0.0)
     assert bound <= dist + 1e-12 and dist <= bound + 5e-3 * mjm.geom_rbound[g], (p, dist, bound)
+
+
+def test_warp_contacts_reruns_when_the_buffer_overflows(monkeypatch):
+  """Contacts that did not fit are not dropped: the collision reruns with room for them."""
+  from mjx_supportfield import compare
+
+  mjm = mujoco.MjModel.from_xml_path(model_path("convex_pile.xml"))
+  states = compare.sample_states(mjm, 0, 1)
+  full = compare.warp_contacts(mjm, states, 2)
+  real, calls = compare._collide, []
+
+  def tight(mjm, qpos, plugin, nconmax):
+    calls.append(nconmax)
+    return real(mjm, qpos, plugin, 1 if len(calls) == 1 else nconmax)
+
+  monkeypatch.setattr(compare, "_collide", tight)
+  again = compare.warp_contacts(mjm, states, 2)
+  assert len(calls) == 2 and [len(w) for w in again] == [len(w) for w in full] and len(full[0]) > 1

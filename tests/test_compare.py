@@ -288,3 +288,19 @@ def test_warp_contacts_reruns_when_the_buffer_overflows(monkeypatch):
   monkeypatch.setattr(compare, "_collide", tight)
   again = compare.warp_contacts(mjm, states, 2)
   assert len(calls) == 2 and [len(w) for w in again] == [len(w) for w in full] and len(full[0]) > 1
+
+
+def test_nonconvex_pairs_are_labelled_and_not_counted():
+  """MuJoCo C collides a non-convex mesh's hull: its pairs' deep points and normals are kept
+  apart from the counts --check uses."""
+  from mjx_supportfield.compare import sample_states
+
+  mjm = mujoco.MjModel.from_xml_path(model_path("nonconvex.xml"))
+  report = compare_states(mjm, sample_states(mjm, 100, 2), {"stock": None})
+  assert report["nonconvex_geoms"] == ["bowl", "cup"]  # the model's custom text
+  summary = report["impls"]["stock"]["summary"]
+  deep = [r for s in report["impls"]["stock"]["states"] for r in s["deep_points"]]
+  assert summary["deep_points_reference_nonconvex"] > 0
+  assert summary["deep_points_reference"] == sum(1 for r in deep if r["kind"] != "nonconvex")
+  assert all(r["kind"] == "nonconvex" for r in deep if {"bowl", "cup"} & set(r["pair"].split("-")))
+  assert "MuJoCo C collides this mesh's convex hull" in format_report({"model": "nonconvex", **report})

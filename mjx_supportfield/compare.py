@@ -544,6 +544,8 @@ def verdict(report: dict, impl: str = "plugin", baseline: str = "stock") -> str:
   base = report["impls"].get(baseline, {}).get("summary")
   stock = f" ({baseline} {base['deep_points_missed']})" if base else ""
   reasons = check(report, impl)
+  if s["deep_points_reference_nonconvex"]:
+    stock += f", {s['deep_points_reference_nonconvex']} more on non-convex meshes not counted"
   return (f"{impl}: {s['deep_points_missed']} deep points missed of {s['deep_points_reference']}{stock}; "
           f"{s['pairs_normal_worse']} worse normals; {s['contacts_outside']} points off the shapes: "
           + ("passes" if not reasons else "fails: " + "; ".join(reasons)))

@@ -25,6 +25,7 @@ import mujoco
 import mujoco_warp as mjw
 import numpy as np
 import warp as wp
+from mujoco_warp._src.types import OverflowType
 
 from mjx_supportfield import exact
 from mjx_supportfield.install import collision as plugin_collision
@@ -99,11 +100,39 @@ def warp_contacts(mjm: mujoco.MjModel, states: list[np.ndarray], nworld: Optiona
   World w holds state w % len(states); nworld defaults to one world per state.
   """
   nworld = nworld or len(states)
+  qpos = np.stack([states[w % len(states)] for w in range(nworld)]).astype(np.float32)
+  nconmax = max(64, 4 * mjm.ngeom)
+  d, n = _collide(mjm, qpos, plugin, nconmax)
+  if _overflowed(d, n):  # MuJoCo Warp counts what it had no room for: rerun with room for all
+    need = max(n, int(d.ncollision.numpy()[0]))
+    d, n = _collide(mjm, qpos, plugin, max(2 * nconmax, -(-need // nworld) + nconmax))
+  if _overflowed(d, n):
+    flags = int(np.bitwise_or.reduce(d.overflow.numpy()))
+    names = [t.name for t in OverflowType if t.value and t.name != "ALL" and flags & t.value]
+    raise RuntimeError(f"warp_contacts: buffers overflowed ({', '.join(names) or 'contacts'}) after a rerun with "
+                       f"room for {d.naconmax} contacts; with the plugin, raise Options.max_collision_pairs")
+  c = d.contact
+  geom, dist, pos = c.geom.numpy()[:n], c.dist.numpy()[:n], c.pos.numpy()[:n]
+  frame, world = c.frame.numpy()[:n], c.worldid.numpy()[:n]
+  out = [[] for _ in range(nworld)]
+  for i in range(n):
+    out[world[i]].append(Contact((int(geom[i][0]), int(geom[i][1])), float(dist[i]), pos[i], frame[i][0]))
+  return out
+
+
+def _overflowed(d, n: int) -> bool:
+  """Whether a collision pass dropped pairs or contacts for want of room (stock MuJoCo Warp
+  counts the broad phase's pairs past its room in d.ncollision)."""
+  return n > d.naconmax or int(d.ncollision.numpy()[0]) > d.naconmax or bool(d.overflow.numpy().any())
+
+
+def _collide(mjm: mujoco.MjModel, qpos: np.ndarray, plugin: Optional[Options], nconmax: int):
+  """MuJoCo Warp's Data after collision at the given qpos (one world a row) and the number of
+  contacts it found (more than d.naconmax when they did not fit)."""
   m = mjw.put_model(mjm)
   if plugin is not None:
     install(mjm, m, plugin)
-  d = mjw.make_data(mjm, nworld=nworld, nconmax=max(64, 4 * mjm.ngeom))
-  qpos = np.stack([states[w % len(states)] for w in range(nworld)]).astype(np.float32)
+  d = mjw.make_data(mjm, nworld=len(qpos), nconmax=nconmax)
   wp.copy(d.qpos, wp.array(qpos, dtype=float, device=d.qpos.device))
   mjw.kinematics(m, d)
   if plugin is not None:
@@ -112,14 +141,7 @@ def warp_contacts(mjm: mujoco.MjModel, states: list[np.ndarray], nworld: Optiona
   else:
     mjw.collision(m, d)
   wp.synchronize()
-  n = min(int(d.nacon.numpy()[0]), d.naconmax)
-  c = d.contact
-  geom, dist, pos = c.geom.numpy()[:n], c.dist.numpy()[:n], c.pos.numpy()[:n]
-  frame, world = c.frame.numpy()[:n], c.worldid.numpy()[:n]
-  out = [[] for _ in range(nworld)]
-  for i in range(n):
-    out[world[i]].append(Contact((int(geom[i][0]), int(geom[i][1])), float(dist[i]), pos[i], frame[i][0]))
-  return out
+  return d, int(d.nacon.numpy()[0])
 
 
 def _deepest_by_pair(contacts: list[Contact]) -> dict:
@@ -288,9 +310,9 @@ def points_off_shapes(scene: _Scene, ref: Reference, contacts: list[Contact], tr
 
 def _fidelity_summary(per_state: list[dict]) -> dict:
   """The fidelity counts over all states (see compare_states)."""
-  deep = [r for s in per_state for r in s["deep_points"]]
-  normals = [dict(r, state=i) for i, s in enumerate(per_state) for r in s["normals"]]
-  off = [dict(r, state=i) for i, s in enumerate(per_state) for r in s["outside"]["off"]]
+  deep = [dict(r, world=s["world"], state=s["state"]) for s in per_state for r in s["deep_points"]]
+  normals = [dict(r, world=s["world"], state=s["state"]) for s in per_state for r in s["normals"]]
+  off = [dict(r, world=s["world"], state=s["state"]) for s in per_state for r in s["outside"]["off"]]
 
   def count(rows, kind=None, missed=None):
     return sum(1 for r in rows if (kind is None or r["kind"] in kind) and (missed is None or r["missed"] == missed))
@@ -318,8 +340,7 @@ def _fidelity_summary(per_state: list[dict]) -> dict:
     "contacts_checked": sum(s["outside"]["checked"] for s in per_state),
     "contacts_outside": len(off),
     "max_outside": max((s["outside"]["max_outside"] for s in per_state), default=0.0),
-    "deep_points_missed_list": [dict(r, state=i) for i, s in enumerate(per_state) for r in s["deep_points"]
-                                if r["missed"]],
+    "deep_points_missed_list": [r for r in deep if r["missed"]],
     "normals_over_5deg_list": far,
     "contacts_outside_list": off,
   }
@@ -381,13 +402,24 @@ def compare_states(mjm: mujoco.MjModel, states: list[np.ndarray], impls: dict, m
   impls maps a name to plugin ``Options`` or None (stock MuJoCo Warp); world w holds state
   w % len(states) (nworld defaults to one world per state). Returns ``{"states", "nworld",
   "min_depth", "radius", "device", "nonconvex_geoms", "reference", "impls": {name: {"summary",
-  "states"}}}``; each summary holds the pair-level figures of ``match`` and the fidelity
-  figures (deep points, normal verdicts, points off the shapes; see the module docstring),
-  each state the per-pair rows and the detail lists ``deep_points``, ``normals``, ``outside``.
-  ``reference`` judges MuJoCo C's own points against its shapes.
+  "states"}}}``. Each summary holds the pair-level figures of ``match`` (pairs_reference, found,
+  missed, missed_deep, depth/normal/position errors, ...) and the fidelity figures:
+  deep_points_reference / _missed / _missed_fraction (MuJoCo C's points >= min_depth deep
+  without a contact of their pair within radius; heightfield pairs included, also counted
+  apart as ..._hfield; pairs with a non-convex mesh only in ..._nonconvex), normals_differ /
+  _better / _tie / _worse (verdicts by exact overlap where the deepest normals differ by more
+  than NORMAL_DIFFER_DEG), pairs_normal_over_5deg, pairs_normal_worse (over 5 deg and worse),
+  normals_skipped_hfield / _nonconvex, contacts_checked, contacts_outside, max_outside [m],
+  and the lists deep_points_missed_list, normals_over_5deg_list, contacts_outside_list (each
+  row naming its world and state). Each entry of "states" (one per world) holds match's rows
+  and the detail lists deep_points, normals, outside. ``reference`` judges MuJoCo C's own
+  points against its shapes.
   """
   if not states:
     raise ValueError("compare_states: no states given")
+  for name, opts in impls.items():
+    if opts is not None and not isinstance(opts, Options):
+      raise ValueError(f"compare_states: impls['{name}'] must be Options or None (stock), got {type(opts).__name__}")
   if collision_geoms(mjm) == 0:
     raise ValueError("the model has no collision geoms (every geom has contype = conaffinity = 0 and no <pair> "
                      "names one): there are no contacts to compare")
@@ -410,7 +442,7 @@ def compare_states(mjm: mujoco.MjModel, states: list[np.ndarray], impls: dict, m
     per_state = []
     for w in range(nworld):
       ref = refs[w % len(states)]
-      s = match(ref.contacts, worlds[w], min_depth, scene.size)
+      s = {"world": w, "state": w % len(states), **match(ref.contacts, worlds[w], min_depth, scene.size)}
       s["deep_points"] = deep_points(scene, ref, worlds[w])
       s["normals"] = adjudicate_normals(scene, ref, worlds[w])
       s["outside"] = points_off_shapes(scene, ref, worlds[w], true_mesh)
@@ -512,6 +544,8 @@ def verdict(report: dict, impl: str = "plugin", baseline: str = "stock") -> str:
   base = report["impls"].get(baseline, {}).get("summary")
   stock = f" ({baseline} {base['deep_points_missed']})" if base else ""
   reasons = check(report, impl)
+  if s["deep_points_reference_nonconvex"]:
+    stock += f", {s['deep_points_reference_nonconvex']} more on non-convex meshes not counted"
   return (f"{impl}: {s['deep_points_missed']} deep points missed of {s['deep_points_reference']}{stock}; "
           f"{s['pairs_normal_worse']} worse normals; {s['contacts_outside']} points off the shapes: "
           + ("passes" if not reasons else "fails: " + "; ".join(reasons)))

@@ -4,7 +4,7 @@ The yardstick ``compare`` judges contacts with: support functions, the overlap o
 shapes along a normal, and the distance of a point outside a shape. Poses are a geom's world
 position ``xpos`` (3,) and rotation ``xmat`` (3, 3) as MuJoCo C's ``MjData.geom_xpos`` /
 ``geom_xmat`` give them (a mesh's offset already included, so mesh vertices are in the geom
-frame). A mesh is its convex hull, as MuJoCo C collides it (``mesh_graph``), unless asked for
+frame; MuJoCo stores them in float32, which bounds how exact a mesh's answers are). A mesh is its convex hull, as MuJoCo C collides it (``mesh_graph``), unless asked for
 its true triangles. A plane is the half-space below it (its local z <= 0). A heightfield is the
 union of MuJoCo's triangular prisms (two per grid cell, down to ``-size[3]``): not convex, so
 it has a distance but no support function.
@@ -18,6 +18,7 @@ import numpy as np
 
 PLANE_NORMAL_COS = 1.0 - 1e-8  # a direction within ~1.4e-4 rad of a plane's normal is taken as it
 ELLIPSOID_BISECTIONS = 200  # halvings of the Lagrange multiplier's bracket: float64 converges long before
+ON_FACE = 1e-9  # a point this close to a polytope's face (relative to its size) is on it
 DEGENERATE_AREA = 1e-12  # hull triangles with area below this times the hull's size squared are dropped
 
 _GEOM = mujoco.mjtGeom
@@ -57,14 +58,16 @@ class Polytope:
     self.tri = np.stack([a, b, c], axis=1)  # (nface, 3 corners, xyz)
     self.normal = normal
     self.offset = np.einsum("ij,ij->i", normal, a)
+    self.on_face = ON_FACE * scale
 
   def distance(self, p: np.ndarray) -> float:
-    """Distance of point p (own frame) outside the polytope; 0 inside. The nearest point of a
-    convex polytope seen from outside lies on a face whose plane p is above."""
-    above = self.normal @ p - self.offset > 0.0
-    if not above.any():
+    """Distance of point p (own frame) outside the polytope; 0 inside (to within ON_FACE of
+    its size: a point on a face is inside whatever the rounding). Outside, the nearest of all
+    its triangles: picking only the faces p is above would drop the right triangle of a face
+    split into coplanar triangles when rounding puts p under that triangle's plane."""
+    if float((self.normal @ p - self.offset).max()) <= self.on_face:
       return 0.0
-    t = self.tri[above]
+    t = self.tri
     return float(np.sqrt(_point_triangle_dist2(p, t[:, 0], t[:, 1], t[:, 2]).min()))
 
 
@@ -271,17 +274,23 @@ def ellipsoid_distance(radii: np.ndarray, p: np.ndarray) -> float:
   return float(np.linalg.norm(p - nearest))
 
 
+def hfield_elevations(mjm: mujoco.MjModel, hid: int) -> np.ndarray:
+  """Heightfield hid's elevation data in [0, 1], (nrow, ncol), row r at y = -size[1] + r dy."""
+  nrow, ncol, adr = int(mjm.hfield_nrow[hid]), int(mjm.hfield_ncol[hid]), int(mjm.hfield_adr[hid])
+  return np.asarray(mjm.hfield_data[adr : adr + nrow * ncol], dtype=np.float64).reshape(nrow, ncol)
+
+
 def hfield_prisms(mjm: mujoco.MjModel, hid: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
   """The prisms of cells rows r0..r1-1, columns c0..c1-1 of heightfield hid: (nprism, 6, 3),
   top triangle then its base, in the geom frame.
 
-  MuJoCo C (mjc_ConvexHField) splits cell (r, c) along the diagonal from (r + 1, c) to
-  (r, c + 1): triangles {(r, c), (r + 1, c), (r, c + 1)} and {(r + 1, c), (r, c + 1), (r + 1, c + 1)};
-  x along columns, y along rows, z = data * size[2], base at z = -size[3].
+  MuJoCo C (mjc_ConvexHField) splits cell (r, c) along the diagonal from (r, c) to
+  (r + 1, c + 1): triangles {(r, c), (r + 1, c), (r + 1, c + 1)} and {(r, c), (r + 1, c + 1),
+  (r, c + 1)}; x along columns, y along rows, z = data * size[2], base at z = -size[3].
   """
   size = mjm.hfield_size[hid].astype(np.float64)
-  nrow, ncol, adr = int(mjm.hfield_nrow[hid]), int(mjm.hfield_ncol[hid]), int(mjm.hfield_adr[hid])
-  data = np.asarray(mjm.hfield_data[adr : adr + nrow * ncol], dtype=np.float64).reshape(nrow, ncol)
+  nrow, ncol = int(mjm.hfield_nrow[hid]), int(mjm.hfield_ncol[hid])
+  data = _cached(mjm, ("hfield", hid), lambda: hfield_elevations(mjm, hid))
   dx, dy = 2.0 * size[0] / (ncol - 1), 2.0 * size[1] / (nrow - 1)
   r, c = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
   r, c = r.ravel(), c.ravel()
@@ -290,7 +299,7 @@ def hfield_prisms(mjm: mujoco.MjModel, hid: int, r0: int, r1: int, c0: int, c1: 
     return np.stack([dx * cc - size[0], dy * rr - size[1], data[rr, cc] * size[2]], axis=-1)
 
   v00, v10, v01, v11 = vertex(r, c), vertex(r + 1, c), vertex(r, c + 1), vertex(r + 1, c + 1)
-  tops = np.concatenate([np.stack([v00, v10, v01], axis=1), np.stack([v10, v01, v11], axis=1)])
+  tops = np.concatenate([np.stack([v00, v10, v11], axis=1), np.stack([v00, v11, v01], axis=1)])
   bases = tops.copy()
   bases[..., 2] = -size[3]
   return np.concatenate([tops, bases], axis=1)

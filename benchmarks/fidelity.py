@@ -36,6 +36,7 @@ import datetime
 import json
 import os
 import platform
+import subprocess
 import sys
 import time
 from typing import Callable, Optional
@@ -547,6 +548,18 @@ def tables(results: dict) -> str:
   return "\n".join(lines)
 
 
+def _commit() -> str:
+  """The repository's HEAD commit, with "+dirty" when tracked files differ from it ("?" outside git)."""
+  try:
+    head = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                           text=True, check=True).stdout.strip()
+    return head + ("+dirty" if dirty else "")
+  except (OSError, subprocess.CalledProcessError):
+    return "?"
+
+
 def main(argv=None) -> None:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated, of: " + ", ".join(SCENES))
@@ -560,7 +573,8 @@ def main(argv=None) -> None:
   if unknown:
     parser.error(f"unknown scene(s) {', '.join(unknown)}; known: {', '.join(SCENES)}")
   results = {}
-  meta = {"date": str(datetime.date.today()), "device": str(wp.get_device()), "machine": platform.machine(),
+  meta = {"date": str(datetime.date.today()), "commit": _commit(), "device": str(wp.get_device()),
+          "machine": platform.machine(),
           "mujoco": mujoco.__version__, "mujoco_warp": getattr(mjw, "__version__", "?"), "warp": wp.__version__,
           "states": args.states, "worlds": args.worlds, "impls": {k: (None if v is None else dataclasses.asdict(v))
                                                                   for k, v in IMPLS.items()},

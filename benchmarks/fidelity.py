@@ -10,8 +10,8 @@ For each scene:
    "squeezed": every free body moved down along gravity by 1 mm (the lowest) to 3 mm (the
    highest), in proportion to its height among the free bodies. Bodies resting on static geoms
    sink into them, and a body resting on another sinks into it too, as the upper one moves
-   further; what is squeezed is exactly what gravity presses together, without running a
-   different simulation. Articulated robots keep their joints (the Go1's floating base is a free
+   further: what gravity presses together is pressed deeper, without running a different
+   simulation. Articulated robots keep their joints (the Go1's floating base is a free
    body and sinks into the terrain).
 3. ``mjx_supportfield.compare.compare_states`` on both sets for each implementation: MuJoCo C's
    deep points (>= 0.5 mm) missed (no contact of the same geom pair within 3 mm), normals more
@@ -22,8 +22,8 @@ For each scene:
    rolls out the same initial states. Every ``RECORD_EVERY`` steps the state is judged by MuJoCo
    C's own collision (``mj_fwdPosition`` on the rollout's qpos): the deepest penetration. At the
    end: the free bodies' positions against MuJoCo C's from the same initial state (median and
-   largest distance), worlds with a non-finite qpos, free bodies whose centre went inside a
-   static geom or under the floor or terrain (fall-through), and a figure of the task (can
+   largest distance), worlds with a non-finite qpos, free bodies whose centre of mass went inside
+   a static box or under the floor or terrain (fall-through), and a figure of the task (can
    lifted, objects in the bin, ...).
 
 Writes a JSON (default ``benchmarks/results/<date>-cpu-fidelity.json``) and prints markdown

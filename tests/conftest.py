@@ -5,6 +5,8 @@ set of models and option combinations; fixtures that own compiled state are modu
 scoped.
 """
 
+import contextlib
+import ctypes
 import os
 import sys
 import types
@@ -25,6 +27,7 @@ if hasattr(wp.config, "log_level"):  # Warp >= 1.10 logs module loads at INFO le
 
 import mujoco  # noqa: E402
 import mujoco_warp as mjw  # noqa: E402
+from mujoco_warp._src.types import DeterminismType  # noqa: E402
 
 HAS_CUDA = wp.get_cuda_device_count() > 0
 # the device the suite runs on: CPU unless asked (CI has no GPU; the GPU lane passes --device cuda)
@@ -46,6 +49,19 @@ def pytest_configure(config):
   wp.set_device(device)
 
 
+def pytest_collection_modifyitems(config, items):
+  """Tests marked ``cpu_only(reason)`` are skipped on a GPU, with the marker's reason."""
+  if not config.getoption("--device").startswith("cuda"):
+    return
+  for item in items:
+    mark = item.get_closest_marker("cpu_only")
+    if mark is not None:
+      reason = mark.kwargs.get("reason") or (mark.args[0] if mark.args else "")
+      if not reason:
+        raise pytest.UsageError(f"{item.nodeid}: cpu_only needs a reason")
+      item.add_marker(pytest.mark.skip(reason=f"CPU only: {reason}"))
+
+
 def pytest_report_header(config):
   device = wp.get_device()
   name = device.name if device.is_cuda else "cpu"
@@ -55,6 +71,41 @@ def pytest_report_header(config):
 def on_gpu() -> bool:
   """Whether the suite runs on a CUDA device (--device cuda)."""
   return wp.get_device().is_cuda
+
+
+def printed(capfd) -> str:
+  """What the process printed since the last read, kernels' printf included: waits for the
+  device, whose printf output reaches C's stdout only at a synchronization, and flushes C's
+  buffered stdout, which Python's capture does not see until then."""
+  wp.synchronize()
+  ctypes.CDLL(None).fflush(None)
+  return capfd.readouterr().out
+
+
+@contextlib.contextmanager
+def bitwise_repeatable(m):
+  """Within the block, runs on the same state give bitwise the same contacts and qpos.
+
+  On the CPU they do as they are. On a GPU contacts are appended with atomics, so their order
+  changes from run to run, and MuJoCo Warp's solver sums in atomic order: there bitwise
+  repeatability is what ``m.opt.deterministic`` promises, so the block sets it (and restores it).
+  """
+  saved = m.opt.deterministic
+  if on_gpu():
+    m.opt.deterministic = DeterminismType.ALL
+  try:
+    yield
+  finally:
+    m.opt.deterministic = saved
+
+
+def sorted_rows(fields: dict) -> dict:
+  """Contact fields (name -> array, one row a contact) with the rows in a canonical order: by
+  their bytes, so that two sets of contacts compare bitwise whatever order they were written in."""
+  n = len(next(iter(fields.values()))) if fields else 0
+  rows = [b"".join(np.ascontiguousarray(fields[k][i]).tobytes() for k in sorted(fields)) for i in range(n)]
+  order = sorted(range(n), key=rows.__getitem__)
+  return {k: v[order] for k, v in fields.items()}
 
 
 def model_path(name: str) -> str:
@@ -127,6 +178,12 @@ def contacts(d, world: int) -> types.SimpleNamespace:
     normal=frame[:, 0, :],
     geom=c.geom.numpy()[:n][sel].reshape(-1, 2),
   )
+
+
+def world_contact_fields(d, world: int) -> dict:
+  """The fields that describe one world's contacts (not their places in the constraint rows)."""
+  c = contacts(d, world)
+  return {"dist": c.dist, "pos": c.pos, "frame": c.frame, "geom": c.geom}
 
 
 def contact_table(d, world: int) -> dict:

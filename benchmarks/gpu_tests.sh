@@ -3,11 +3,13 @@
 #
 #   benchmarks/gpu_tests.sh REPORT [PYTEST ARGS ...]
 #
-# Runs `pytest --device cuda` over tests/, the test files spread over WORKERS processes
-# (default: one per CPU core) when pytest-xdist is installed, so that their CUDA kernel modules
-# compile side by side; each file stays in one process, which keeps its module-scoped fixtures
-# and compiled kernels together. Writes the GPU's name and pytest's output (failures, skips and
-# the closing passed/failed/skipped line) to REPORT. Exits with pytest's status.
+# Runs `pytest --device cuda` over tests/, the tests spread over WORKERS processes (default: one
+# per CPU core) when pytest-xdist is installed, so that their CUDA kernel modules compile side by
+# side. Tests are dealt out one by one and idle workers steal queued ones (a file at a time left
+# the long files queued behind each other); a module-scoped fixture then sets up once per worker
+# that runs its tests, and Warp's kernel cache (~/.cache/warp) keeps that cheap after the first
+# build. Writes the GPU's name and pytest's output (failures, skips and the closing
+# passed/failed/skipped line) to REPORT. Exits with pytest's status.
 set -uo pipefail
 report=${1:?usage: gpu_tests.sh REPORT [PYTEST ARGS ...]}
 shift
@@ -16,7 +18,7 @@ export PYTHONUNBUFFERED=1
 workers=${WORKERS:-$(nproc)}
 parallel=()
 if python3 -c "import xdist" 2>/dev/null; then
-  parallel=(-n "$workers" --dist loadfile)
+  parallel=(-n "$workers" --dist worksteal)
 fi
 {
   echo "GPU: $(nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | head -1)"

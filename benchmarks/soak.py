@@ -333,7 +333,14 @@ def main():
 
   steps, failures = hist["steps"], hist["failures"]
   complete = steps >= args.steps
+  contacts = [row["contacts_per_world"] for row in hist["trace"]]
+  late = contacts[len(contacts) // 2:]  # the pile has settled by the second half
   report = {"gpu": bench.device_name(), "scene": os.path.basename(scene), "nworld": nworld,
+            "steps": steps, "world_steps": steps * nworld, "nan": hist["nonfinite_chunks"],
+            "overflow": int(bool(hist["overflow_bits"] or hist["dropped_pairs_max"])),
+            "energy_max_seen": hist["energy_max_seen"],
+            "contacts_per_world_second_half": {"min": min(late), "mean": float(np.mean(late)), "max": max(late)}
+            if late else None,
             "steps_run": steps, "steps_asked": args.steps, "stopped_by": reason, "chunk": args.chunk,
             "energy_initial_max": ref["energy_initial_max"], "energy_bound": limit, "failures": failures,
             "passed": not failures, "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__},

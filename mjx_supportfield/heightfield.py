@@ -30,7 +30,11 @@ MPR answers in job order. MPRs that find the queue full (``Options.hfield_mprs_p
 in hfield_contacts instead: the same contacts, slower.
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
-points farthest from those already chosen are written, up to ``max_contacts``. A geom over
+points farthest from those already chosen are written, up to ``max_contacts``, and after them
+every other candidate that penetrates: each is a distinct terrain feature inside the geom (a
+peak or ridge under a face, a corner in a triangle), as MuJoCo's one contact per triangle prism
+is, and a geom lying on rough terrain rests on all of them, not on the few that spread widest
+(``max_contacts`` = 1 still writes one). A geom over
 more than MAX_CELLS cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD``
 (with a printed warning unless ``m.opt.warn_overflow`` clears it).
 """
@@ -903,6 +907,8 @@ def hfield_contacts(
       if opt_warn_hfield:
         wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
                   "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
+    if max_contacts > 1:
+      cands.keep = tp.band  # the penetrating ones (depths include the band)
     write_candidates(
       cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
       solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,

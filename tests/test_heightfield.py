@@ -140,6 +140,36 @@ def test_box_on_bumps_touches_every_bump():
     assert np.min(np.delete(np.linalg.norm(c.pos - c.pos[i], axis=1), i)) > 0.003
 
 
+# a rough patch of terrain (random elevations, kept as numbers)
+ROUGH = np.array([
+  0.9431, 0.5113, 0.9762, 0.0808, 0.6074, 0.3765, 0.8019, 0.1745,
+  0.8716, 0.5439, 0.9022, 0.4772, 0.4305, 0.7889, 0.9842, 0.3697,
+  0.9689, 0.9290, 0.1777, 0.6089, 0.7049, 0.9428, 0.6657, 0.1334,
+  0.4979, 0.4936, 0.5002, 0.9586, 0.3499, 0.2238, 0.5221, 0.6412,
+  0.9391, 0.5820, 0.2678, 0.9298, 0.4917, 0.6758, 0.4760, 0.2170,
+  0.6926, 0.7706, 0.1908, 0.4599, 0.3618, 0.1707, 0.2214, 0.9625,
+  0.8842, 0.3823, 0.7395, 0.0420, 0.9151, 0.5372, 0.8203, 0.2759,
+  0.3761, 0.3480, 0.9724, 0.4295, 0.4997, 0.9560, 0.9032, 0.3950,
+]).reshape(8, 8)
+
+
+def test_ball_in_a_hollow_touches_every_triangle():
+  """A ball (2 cm, 2 mm deep) in a hollow of rough terrain gets MuJoCo C's contacts, one for each
+  triangle it touches (for a sphere C's are exact: each triangle's point nearest the centre),
+  and no more: also the triangle it meets only at a concave edge, from over the next triangle
+  (no point of that triangle's plane under the ball lies on it, and the edge is no ridge)."""
+  ball = '<body pos="0.019846 0.007602 0.024571"><freejoint/><geom name="ball" type="sphere" size="0.02"/></body>'
+  sim, c = _plugin_contacts(_hfield_xml(ROUGH, (0.0875, 0.0875, 0.02, 0.05), ball))
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  assert len(ref) == 5 and min(ref.dist) < -0.0019
+  assert c.n == len(ref)
+  for pos, dist, frame in zip(ref.pos, ref.dist, ref.frame):
+    k = int(np.argmin(np.linalg.norm(c.pos - pos, axis=1)))
+    assert np.linalg.norm(c.pos[k] - pos) < 1e-4, (pos, c.pos)
+    assert abs(c.dist[k] - dist) < 2e-5
+    assert angle_deg(c.normal[k], frame[:3]) < 1.0
+
+
 def test_bad_heightfield_is_rejected():
   mjm = mujoco.MjModel.from_xml_string(_hfield_xml(np.zeros((3, 3)), (1, 1, 0.1, 0.1), BOX))
   m = mjw.put_model(mjm)

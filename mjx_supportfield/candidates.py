@@ -1,6 +1,6 @@
 """Contact candidates of one pair: several sources propose points, duplicates merge, and the
 deepest point plus the ones farthest from those chosen are written (heightfields, non-convex
-meshes)."""
+meshes); a source may ask for every candidate deeper than a depth (``Candidates.keep``) too."""
 
 import warp as wp
 from mujoco_warp._src.collision_core import write_contact
@@ -8,11 +8,12 @@ from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import vec5
 
 NCANDIDATE = 16  # contact candidates kept per pair before the final choice
-MAX_CONTACTS = 8  # most contacts written per pair (Options.max_contacts_per_pair bounds it too)
+MAX_CONTACTS = 8  # most contacts of the spread choice per pair (Options.max_contacts_per_pair bounds it too)
+FAR = 1.0e30
 
 mat_cand = wp.types.matrix(shape=(NCANDIDATE, 3), dtype=float)
 vec_cand = wp.types.vector(length=NCANDIDATE, dtype=float)
-vec_chosen = wp.types.vector(length=MAX_CONTACTS, dtype=int)
+vec_order = wp.types.vector(length=NCANDIDATE, dtype=int)
 
 
 @wp.struct
@@ -24,6 +25,7 @@ class Candidates:
   normal: mat_cand
   depth: vec_cand
   cut: int  # 1 when the source had to skip part of the work (the caller's overflow)
+  keep: float  # candidates deeper than this are written beyond max_contacts (FAR: none)
 
 
 @wp.func
@@ -32,6 +34,7 @@ def empty() -> Candidates:
   c = Candidates()
   c.n = 0
   c.cut = 0
+  c.keep = FAR
   return c
 
 
@@ -74,30 +77,39 @@ def add_candidate(c: Candidates, pos: wp.vec3, normal: wp.vec3, depth: float, sp
 
 
 @wp.func
-def choose(c: Candidates, max_contacts: int) -> vec_chosen:
-  """Candidates to write: the deepest, then each time the one farthest from those chosen
-  (-1 past the end)."""
-  out = vec_chosen()
-  for k in range(MAX_CONTACTS):
+def choose(c: Candidates, max_contacts: int) -> vec_order:
+  """Candidates to write, in order (-1 past the end): the deepest, then each time the one
+  farthest from those already visited, up to max_contacts (at most MAX_CONTACTS); the rest
+  of that order only where deeper than ``c.keep``."""
+  out = vec_order()
+  for k in range(NCANDIDATE):
     out[k] = -1
   if c.n == 0:
     return out
-  first = int(0)
+  spread = wp.min(max_contacts, MAX_CONTACTS)
+  nearest = vec_cand()  # distance to the nearest visited candidate; -1 once visited
+  cur = int(0)
   for k in range(c.n):
-    if c.depth[k] > c.depth[first]:
-      first = k
-  out[0] = first
-  for j in range(1, wp.min(max_contacts, wp.min(c.n, MAX_CONTACTS))):
-    best = int(-1)
+    nearest[k] = FAR
+    if c.depth[k] > c.depth[cur]:
+      cur = k
+  taken = int(0)
+  step = int(0)
+  while cur >= 0 and (step < spread or c.keep < FAR):
+    if step < spread or c.depth[cur] > c.keep:
+      out[taken] = cur
+      taken += 1
+    nearest[cur] = -1.0
+    at = row(c.pos, cur)
+    cur = int(-1)
     best_dist = float(-1.0)
     for k in range(c.n):
-      nearest = float(1.0e30)
-      for i in range(j):
-        nearest = wp.min(nearest, wp.length(row(c.pos, k) - row(c.pos, out[i])))
-      if nearest > best_dist:
-        best = k
-        best_dist = nearest
-    out[j] = best
+      if nearest[k] >= 0.0:
+        nearest[k] = wp.min(nearest[k], wp.length(row(c.pos, k) - at))
+        if nearest[k] > best_dist:
+          cur = k
+          best_dist = nearest[k]
+    step += 1
   return out
 
 
@@ -137,13 +149,15 @@ def write_candidates(
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
 ):
-  """Writes the chosen candidates (given in a frame: world = origin + rot @ local) as contacts
-  with MuJoCo Warp's write_contact; the margin band comes off the depth and the position."""
+  """Writes the candidates that choose picks (given in a frame: world = origin + rot @ local) as
+  contacts with MuJoCo Warp's write_contact; the margin band comes off the depth and the position."""
   chosen = choose(c, max_contacts)
-  for k in range(MAX_CONTACTS):
+  count = int(0)
+  for k in range(NCANDIDATE):
+    if chosen[k] >= 0:
+      count += 1
+  for k in range(count):  # a runtime bound, so the loop is not unrolled: one write_contact call site
     i = chosen[k]
-    if i < 0:
-      continue
     normal = rot @ row(c.normal, i)
     pos = origin + rot @ row(c.pos, i)
     write_contact(

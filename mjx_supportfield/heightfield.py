@@ -20,7 +20,10 @@ give contact candidates in three passes:
   their neighbours), and the point of each ridge edge (a convex fold of the surface) nearest
   the geom's centre and its ends, that lie inside the geom; MPR of that point against the
   geom gives depth and normal (the geom's surface normal). This catches ridges and peaks
-  poking into a geom, which no triangle's plane sees.
+  poking into a geom, which no triangle's plane sees. A round geom (sphere, capsule,
+  ellipsoid, cylinder) also gets the point of each valley edge (a concave fold) nearest its
+  centre, kept where its normal leans away from one of the edge's triangles: lying over one
+  triangle beside the fold, it touches the triangle across the fold only at that edge.
 Three kernels: hfield_jobs finds each pair's cells and its prism and point MPRs that pass
 cheap tests (B above the triangle's plane, outside a prism's side wall, a point outside B by
 one support query) and queues them; hfield_mpr runs the queued MPRs, one thread each, so that a
@@ -30,7 +33,11 @@ MPR answers in job order. MPRs that find the queue full (``Options.hfield_mprs_p
 in hfield_contacts instead: the same contacts, slower.
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
-points farthest from those already chosen are written, up to ``max_contacts``. A geom over
+points farthest from those already chosen are written, up to ``max_contacts``, and after them
+every other candidate that penetrates: each is a distinct terrain feature inside the geom (a
+peak or ridge under a face, a corner in a triangle), as MuJoCo's one contact per triangle prism
+is, and a geom lying on rough terrain rests on all of them, not on the few that spread widest
+(``max_contacts`` = 1 still writes one). A geom over
 more than MAX_CELLS cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD``
 (with a printed warning unless ``m.opt.warn_overflow`` clears it).
 """
@@ -214,6 +221,15 @@ def _ridge(e0: wp.vec3, e1: wp.vec3, o1: wp.vec3, o2: wp.vec3, eps: float) -> bo
 
 
 @wp.func
+def _valley(e0: wp.vec3, e1: wp.vec3, o1: wp.vec3, o2: wp.vec3, eps: float) -> bool:
+  """Whether edge e0-e1, between triangles (e0, e1, o1) and (e0, e1, o2), is a valley (a concave
+  fold): o2 lies above the plane of the first triangle (a flat edge is neither)."""
+  n = wp.cross(e1 - e0, o1 - e0)
+  n = wp.where(n[2] < 0.0, -n, n)
+  return wp.dot(n, o2 - e0) > eps * wp.length(n)
+
+
+@wp.func
 def _peak(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float, dy: float,
           r: int, c: int, eps: float) -> bool:
   """Whether grid vertex (r, c) stands above the mean of its (up to 4) grid neighbours; a
@@ -229,37 +245,46 @@ def _peak(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, si
 @wp.func
 def _feature(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
              dy: float, r: int, c: int, k: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3,
-             eps: float) -> tuple[wp.vec3, wp.vec3, bool]:
-  """Feature k of cell (r, c) as a segment e0-e1 (a point when e0 = e1), and whether it is
-  convex (a peak or a ridge): 0 the vertex p00; 1, 2 the edges p00-p01 and p00-p10; 3 the
-  diagonal p00-p11; 4, 5 the far edges p01-p11 and p10-p11; 6, 7, 8 the far vertices p01, p10
-  and p11 (4 to 8 belong to the cells on the far border of the visited range)."""
+             eps: float) -> tuple[wp.vec3, wp.vec3, wp.vec3, wp.vec3, bool]:
+  """Feature k of cell (r, c) as a segment e0-e1 (a point when e0 = e1), an edge's two
+  triangles' third vertices o1, o2, and whether it is convex (a peak or a ridge): 0 the vertex
+  p00; 1, 2 the edges p00-p01 and p00-p10; 3 the diagonal p00-p11; 4, 5 the far edges p01-p11
+  and p10-p11; 6, 7, 8 the far vertices p01, p10 and p11 (4 to 8 belong to the cells on the far
+  border of the visited range). An edge on the terrain's border counts as a ridge."""
   e0 = p00
   e1 = p00
+  o1 = p00
+  o2 = p00
+  border = bool(False)
   convex = bool(False)
   if k == 0:
     convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, eps)
   elif k == 1:
     e1 = p01
-    other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
-    convex = r == 0 or _ridge(p00, p01, p11, other, eps)
+    o1 = p11
+    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
+    border = r == 0
   elif k == 2:
     e1 = p10
-    other = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
-    convex = c == 0 or _ridge(p00, p10, p11, other, eps)
+    o1 = p11
+    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
+    border = c == 0
   elif k == 3:
     e1 = p11
-    convex = _ridge(p00, p11, p10, p01, eps)
+    o1 = p10
+    o2 = p01
   elif k == 4:
     e0 = p01
     e1 = p11
-    other = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
-    convex = c + 2 > ncol - 1 or _ridge(p01, p11, p00, other, eps)
+    o1 = p00
+    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
+    border = c + 2 > ncol - 1
   elif k == 5:
     e0 = p10
     e1 = p11
-    other = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
-    convex = r + 2 > nrow - 1 or _ridge(p10, p11, p00, other, eps)
+    o1 = p00
+    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
+    border = r + 2 > nrow - 1
   elif k == 6:
     e0 = p01
     e1 = p01
@@ -272,7 +297,29 @@ def _feature(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
     e0 = p11
     e1 = p11
     convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c + 1, eps)
-  return e0, e1, convex
+  if k >= 1 and k <= 5:
+    convex = border or _ridge(e0, e1, o1, o2, eps)
+  return e0, e1, o1, o2, convex
+
+
+@wp.func
+def _fold_answer_kept(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
+                      dy: float, r: int, c: int, job: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3,
+                      normal: wp.vec3, eps: float) -> bool:
+  """Whether point-pass job ``job``'s answer (B's surface normal ``normal``) is kept: always,
+  but for a concave edge's point, only where B leans away from one of the edge's two triangles,
+  which then touches B at that edge alone; where both triangles' faces hold contacts of B, the
+  edge's point between them adds nothing."""
+  k = (job - 2) // 3
+  if (job - 2) % 3 != 0 or k < 1 or k > 5:
+    return True
+  e0, e1, o1, o2, convex = _feature(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, k, p00, p01, p10, p11, eps)
+  if convex:
+    return True
+  axis = wp.normalize(e1 - e0)
+  into1 = (o1 - e0) - wp.dot(o1 - e0, axis) * axis  # from the edge into each triangle, in its plane
+  into2 = (o2 - e0) - wp.dot(o2 - e0, axis) * axis
+  return wp.dot(normal, into1) < 0.0 or wp.dot(normal, into2) < 0.0
 
 
 @wp.func
@@ -294,24 +341,27 @@ def _cell(hfield_data: wp.array(dtype=float), adr: int, ncol: int, size: wp.vec4
 @wp.func
 def _feature_point(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
                    dy: float, r: int, c: int, r1: int, c1: int, job: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3,
-                   p11: wp.vec3, center: wp.vec3, eps: float) -> tuple[wp.vec3, bool]:
+                   p11: wp.vec3, center: wp.vec3, eps: float, valleys: bool) -> tuple[wp.vec3, bool]:
   """The terrain point of point-pass job (2 ...) of cell (r, c), and whether it is one: job
   2 + 3 k + end is feature k's point nearest B's centre (end 0) or a ridge's ends (1, 2).
   Only convex features (ridges, peaks) can poke into a geom (elsewhere the surface points
-  inside it are the plane pass's business); a face of B meets a ridge deepest at an end. The
-  far-border features belong to the range's last row and column of cells (r1, c1)."""
+  inside it are the plane pass's business); a face of B meets a ridge deepest at an end. With
+  ``valleys`` the point of a concave edge (a fold up into the next triangle) nearest B's centre
+  is one too: a round B beside the fold, over the next triangle, touches this triangle only at
+  that edge, which its plane's deepest point (beyond the triangle) does not see. The far-border
+  features belong to the range's last row and column of cells (r1, c1)."""
   k = (job - 2) // 3
   end = (job - 2) % 3
   if (end > 0 and (k < 1 or k > 5)) or ((k == 4 or k == 6 or k == 8) and c < c1) or (
       (k == 5 or k == 7 or k == 8) and r < r1):
     return p00, False
-  e0, e1, convex = _feature(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, k, p00, p01, p10, p11, eps)
+  e0, e1, o1, o2, convex = _feature(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, k, p00, p01, p10, p11, eps)
   q = _closest_on_segment(e0, e1, center)
   if end == 1:
     q = e0
   elif end == 2:
     q = e1
-  return q, convex
+  return q, convex or (valleys and end == 0 and k >= 1 and k <= 5 and _valley(e0, e1, o1, o2, eps))
 
 
 @wp.func
@@ -417,6 +467,15 @@ def _scale(tp: TerrainPair, dx: float, dy: float) -> float:
 
 
 @wp.func
+def _round(b: Shape) -> bool:
+  """Whether B's surface is curved, so that it can touch a concave terrain edge from the side
+  (a box's or a mesh's faces meet such an edge only where they already meet a face or a
+  ridge)."""
+  return b.gtype == GeomType.SPHERE or b.gtype == GeomType.CAPSULE or b.gtype == GeomType.ELLIPSOID or (
+    b.gtype == GeomType.CYLINDER)
+
+
+@wp.func
 def _cell_jobs(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
                ms: MeshSupport, mode: int, tp: TerrainPair, cell: int) -> int:
   """The MPR jobs of a window cell that pass the cheap tests, as a bit mask over its NJOB jobs:
@@ -445,7 +504,7 @@ def _cell_jobs(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: in
       on_b = k == 0 or k == 1 or k == 3 or k == 4 or k == 6 or k == 8
       if (below_a or not on_a) and (below_b or not on_b):
         q, wanted = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job,
-                                   p00, p01, p10, p11, b.center, eps)
+                                   p00, p01, p10, p11, b.center, eps, _round(b))
         lo = tp.lo
         hi = tp.hi
         if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
@@ -473,7 +532,7 @@ def _job_shape(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: in
   p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
   if job >= 2:
     q, convex = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job, p00, p01,
-                          p10, p11, b.center, eps)
+                          p10, p11, b.center, eps, False)
     return _point_shape(q, tp.band)
   return _prism_shape(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -size[3], tp.band)
 
@@ -541,7 +600,8 @@ def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, nco
                     tol: float) -> Candidates:
   """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to the
   candidates, unless it is a prism's answer through a side wall or one the face contacts
-  already hold (_prism_answer_kept), or a point's with a normal into the terrain."""
+  already hold (_prism_answer_kept), or a point's with a normal into the terrain or between
+  two faces that hold B's contacts (_fold_answer_kept)."""
   if answer[3] <= 0.0:
     return cands
   dx, dy = _cell_size(size, nrow, ncol)
@@ -558,6 +618,9 @@ def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, nco
       return cands
   elif wp.dot(normal, na + nb) <= 0.0:
     return cands  # B's surface normal must point away from the terrain
+  elif not _fold_answer_kept(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, job, p00, p01, p10, p11, normal,
+                             1.0e-6 * (dx + dy + size[2])):
+    return cands
   return add_candidate(cands, res.pos, normal, res.depth, spacing)
 
 
@@ -903,6 +966,8 @@ def hfield_contacts(
       if opt_warn_hfield:
         wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
                   "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
+    if max_contacts > 1:
+      cands.keep = tp.band  # the penetrating ones (depths include the band)
     write_candidates(
       cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
       solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,

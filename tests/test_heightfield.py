@@ -92,6 +92,84 @@ def test_small_box_across_a_coarse_ridge():
   assert np.all(c.normal[:, 2] > 0.999)
 
 
+def _box_on_bumps():
+  """A 32 cm box face lying on a slope (z = 0.1 x) 4.5 mm above it, over nine bumps of 5.5 to
+  8.5 mm on the grid vertices under it (cells of 10 cm): each bump pokes 1 to 4 mm into the face.
+  Returns the MJCF, the heights, the bumps' apexes and depths, a point of the face and its normal."""
+  x = np.linspace(-0.4, 0.4, 9)
+  height = np.tile(0.1 * x, (9, 1))
+  height[3:6, 3:6] += 1e-3 * (5.5 + 0.375 * np.array([[3, 7, 1], [5, 8, 0], [2, 6, 4]]))
+  base = height.min()
+  height -= base
+  normal = np.array([-0.1, 0.0, 1.0]) / np.linalg.norm([-0.1, 0.0, 1.0])
+  face = np.array([0.0, 0.0, -base]) + 0.0045 * normal
+  centre = face + 0.02 * normal
+  box = (f'<body pos="{centre[0]} {centre[1]} {centre[2]}" euler="0 {-np.degrees(np.arctan(0.1))} 0"><freejoint/>'
+         '<geom name="box" type="box" size=".16 .16 .02"/></body>')
+  apex = np.array([[x[c], x[r], height[r, c]] for r in range(3, 6) for c in range(3, 6)])
+  # MuJoCo reads the elevation's first row as the grid's last (at y = +size[1])
+  xml = _hfield_xml(np.flipud(height) / height.max(), (0.4, 0.4, height.max(), 0.1), box)
+  return xml, height, apex, (apex - face) @ normal, face, normal
+
+
+def test_box_on_bumps_touches_every_bump():
+  """A box face on rough terrain rests on every bump that pokes into it: a contact at each of the
+  nine (halfway between the apex and the face, as deep as the apex), as MuJoCo C's prisms find
+  them, not only the five spread widest; every contact a terrain point inside the box at its
+  own depth, none two at one place."""
+  xml, height, apex, depth, face, normal = _box_on_bumps()
+  assert np.all(depth > 0.0009) and np.all(depth < 0.0041)
+  # MuJoCo C's prisms find these depths too (with libccd's MPR: its default EPA stops short on
+  # this scene, with shallower points away from the bumps)
+  mjm = mujoco.MjModel.from_xml_string(xml)
+  mjm.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_NATIVECCD
+  mjd = mujoco.MjData(mjm)
+  mujoco.mj_forward(mjm, mjd)
+  found = np.abs(-mjd.contact.dist[: mjd.ncon, None] - depth[None, :]) < 5e-5
+  assert found.any(axis=1).all() and found.any(axis=0).all()
+  _, c = _plugin_contacts(xml)
+  assert c.n <= 16
+  on_terrain = c.pos - 0.5 * c.dist[:, None] * c.normal
+  for p in apex:
+    assert np.min(np.linalg.norm(on_terrain - p, axis=1)) < 1e-3, (p, on_terrain)
+  size = (0.4, 0.4, height.max())
+  for i in range(c.n):
+    assert abs(on_terrain[i, 2] - make_terrain.terrain_height(size, height / height.max(), *on_terrain[i, :2])) < 1e-5
+    assert abs((on_terrain[i] - face) @ normal + c.dist[i]) < 1e-5
+    assert angle_deg(c.normal[i], normal) < 0.01
+    assert np.min(np.delete(np.linalg.norm(c.pos - c.pos[i], axis=1), i)) > 0.003
+
+
+# a rough patch of terrain (random elevations, kept as numbers)
+ROUGH = np.array([
+  0.9431, 0.5113, 0.9762, 0.0808, 0.6074, 0.3765, 0.8019, 0.1745,
+  0.8716, 0.5439, 0.9022, 0.4772, 0.4305, 0.7889, 0.9842, 0.3697,
+  0.9689, 0.9290, 0.1777, 0.6089, 0.7049, 0.9428, 0.6657, 0.1334,
+  0.4979, 0.4936, 0.5002, 0.9586, 0.3499, 0.2238, 0.5221, 0.6412,
+  0.9391, 0.5820, 0.2678, 0.9298, 0.4917, 0.6758, 0.4760, 0.2170,
+  0.6926, 0.7706, 0.1908, 0.4599, 0.3618, 0.1707, 0.2214, 0.9625,
+  0.8842, 0.3823, 0.7395, 0.0420, 0.9151, 0.5372, 0.8203, 0.2759,
+  0.3761, 0.3480, 0.9724, 0.4295, 0.4997, 0.9560, 0.9032, 0.3950,
+]).reshape(8, 8)
+
+
+def test_ball_in_a_hollow_touches_every_triangle():
+  """A ball (2 cm, 2 mm deep) in a hollow of rough terrain gets MuJoCo C's contacts, one for each
+  triangle it touches (for a sphere C's are exact: each triangle's point nearest the centre),
+  and no more: also the triangle it meets only at a concave edge, from over the next triangle
+  (no point of that triangle's plane under the ball lies on it, and the edge is no ridge)."""
+  ball = '<body pos="0.019846 0.007602 0.024571"><freejoint/><geom name="ball" type="sphere" size="0.02"/></body>'
+  sim, c = _plugin_contacts(_hfield_xml(ROUGH, (0.0875, 0.0875, 0.02, 0.05), ball))
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  assert len(ref) == 5 and min(ref.dist) < -0.0019
+  assert c.n == len(ref)
+  for pos, dist, frame in zip(ref.pos, ref.dist, ref.frame):
+    k = int(np.argmin(np.linalg.norm(c.pos - pos, axis=1)))
+    assert np.linalg.norm(c.pos[k] - pos) < 1e-4, (pos, c.pos)
+    assert abs(c.dist[k] - dist) < 2e-5
+    assert angle_deg(c.normal[k], frame[:3]) < 1.0
+
+
 def test_bad_heightfield_is_rejected():
   mjm = mujoco.MjModel.from_xml_string(_hfield_xml(np.zeros((3, 3)), (1, 1, 0.1, 0.1), BOX))
   m = mjw.put_model(mjm)

@@ -9,10 +9,10 @@ import mujoco_warp as mjw
 import numpy as np
 import pytest
 from conftest import MODELS
-from conftest import printed
 from conftest import angle_deg
 from conftest import contacts
 from conftest import load
+from conftest import printed
 
 import mjx_supportfield as sf
 

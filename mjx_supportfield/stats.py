@@ -29,9 +29,9 @@ class CollisionStats(dict):
     pairs = self["pairs_per_world"]
     dropped = self["dropped_pairs_per_world"]
     nonfinite = self["nonfinite_worlds"]
+    spread = f"; most: {_worst(pairs, worst)}" if max(pairs) > min(pairs) else ""
     lines = [f"{self['pairs']} broad-phase pairs in {self.nworld} world{'s' if self.nworld > 1 else ''} "
-             f"(per world: min {min(pairs)}, mean {sum(pairs) / len(pairs):.1f}, max {max(pairs)}; "
-             f"most: {_worst(pairs, worst)})"]
+             f"(per world: min {min(pairs)}, mean {sum(pairs) / len(pairs):.1f}, max {max(pairs)}{spread})"]
     ndropped = sum(dropped)
     if ndropped:
       nworld = sum(1 for x in dropped if x)

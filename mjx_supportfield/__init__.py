@@ -2,11 +2,18 @@
 
 Typical use::
 
+  wp.config.log_level = wp.LOG_WARNING  # before Warp starts: no banner, no line per module loaded
   mjm = mujoco.MjModel.from_xml_path("scene.xml")
   m = mjw.put_model(mjm)
   d = mjw.make_data(mjm, nworld=1024)
   mjx_supportfield.install(mjm, m)
   mjw.step(m, d)  # collision now runs through the plugin
+  print(mjx_supportfield.get_collider(m).stats(d))
+
+The first use of a model compiles Warp kernels that are not in Warp's kernel cache yet (about a
+minute on a CPU, minutes on a GPU); the plugin says what compiles and roughly how long on logger
+``mjx_supportfield`` (``first_use``), silenced with
+``logging.getLogger("mjx_supportfield").setLevel(logging.WARNING)``.
 """
 
 import importlib

@@ -15,8 +15,8 @@ its default log level, a line per module afterwards). So the plugin writes notes
 The plugin's first collision is first run as a plan: its launches are skipped (Warp's
 ``Module.load`` answers None, on which ``wp.launch`` returns) and the modules that would compile are
 counted; then it runs. Everything cached: nothing is written. The watch (a wrapper around Warp's
-``Module.load``) is removed once every installed model has stepped past its first collision, so
-later steps run exactly as without it.
+``Module.load``, which costs each launch a few microseconds) is removed at the next collision
+after a first one, so later steps run exactly as without it.
 
 Silence the notes with ``logging.getLogger("mjx_supportfield").setLevel(logging.WARNING)``. While
 the application has configured no logging, they go to stderr; else through its handlers.
@@ -79,13 +79,14 @@ def _describe(module) -> str:
 
 
 def _will_compile(module, device, block_dim) -> bool:
-  """Whether loading ``module`` on ``device`` builds it: it is not loaded with its current hash,
-  and Warp's kernel cache lacks its binary or metadata (the test ``Module._compile`` makes)."""
+  """Whether loading ``module`` on ``device`` builds it: it is not loaded, and Warp's kernel cache
+  lacks its binary or metadata (the test ``Module._compile`` makes)."""
   try:
     device = wp.get_device(device)
     block_dim = module.options["block_dim"] if block_dim is None else block_dim
-    loaded = module.execs.get((device.context, block_dim))
-    if loaded is not None and (module.options["strip_hash"] or loaded.module_hash == module.get_module_hash(block_dim)):
+    if (device.context, block_dim) in module.execs:
+      # loaded: a launch's usual case, kept cheap (a module changed after loading, which Warp
+      # rebuilds, goes unnoted)
       return False
     if module.failed_builds.get((device.context, block_dim)) is not None:
       return False  # Warp raises the recorded error
@@ -170,16 +171,17 @@ class _Watch:
         return watch.load(module, device, block_dim, *args, **kwargs)
 
       wp_context.Module.load = load
-      _set_active(True)
+    _set_active(True)
 
-  def stop_if_done(self):
-    if self.holders or len(self.pending):
-      return
-    self.end_stage()
-    if self.original is not None:
-      wp_context.Module.load = self.original
-      self.original = None
-    _set_active(False)
+  def stop(self):
+    """Unwraps Warp's Module.load unless a block asks for notes; models still to collide keep
+    the dispatcher routing through ``collide``, which wraps it again for their first collision."""
+    if not self.holders:
+      self.end_stage()
+      if self.original is not None:
+        wp_context.Module.load = self.original
+        self.original = None
+    _set_active(self.original is not None or len(self.pending) > 0)
 
   def end_stage(self):
     with self.lock:
@@ -218,7 +220,8 @@ class _Watch:
 
 _watch = _Watch()
 
-# True while Warp's Module.load is wrapped: the dispatcher then routes collisions through ``collide``
+# True while Warp's Module.load is wrapped or an installed model has yet to collide: the dispatcher
+# then routes collisions through ``collide``
 active = False
 
 
@@ -238,19 +241,24 @@ def disarm(collider) -> None:
   """Called by ``uninstall``: ``collider`` will not collide again."""
   with _watch.lock:
     _watch.pending.discard(collider)
-    _watch.stop_if_done()
+    _watch.stop()
 
 
 def collide(collider, m, d, awake_prev=None) -> None:
   """``collider.collision`` while the watch is on: the first collision of an installed model is
-  planned and its compiles counted; a later one ends the first step and, once every installed
-  model is past it, the watch."""
+  planned and its compiles counted; a later one (the next step) ends the wrapper around Warp's
+  Module.load."""
   if collider in _watch.pending:
-    _watch.pending.discard(collider)
+    with _watch.lock:
+      _watch.pending.discard(collider)
+      _watch.start()  # also when another model's step ended the watch
     _watch.first_collision(collider, m, d, awake_prev)
     return
-  _watch.end_stage()  # the rest of the previous step
-  _watch.stop_if_done()
+  with _watch.lock:
+    _watch.end_stage()  # the rest of the previous step
+    # a step is over: launches stop paying for the wrapper, even while another installed model
+    # has yet to collide (its first collision wraps Module.load again)
+    _watch.stop()
   collider.collision(m, d, awake_prev)
 
 
@@ -267,7 +275,7 @@ def announce_compiles(label: str):
     with _watch.lock:
       _watch.end_stage()
       _watch.holders.remove(label)
-      _watch.stop_if_done()
+      _watch.stop()
 
 
 @contextlib.contextmanager
@@ -283,4 +291,4 @@ def stage(label: str):
     with _watch.lock:
       _watch.end_stage()
       _watch.holders.remove(label)
-      _watch.stop_if_done()
+      _watch.stop()

@@ -23,7 +23,7 @@ def no_pending_models():
   """Models other tests installed and have not stepped are not this file's: their first collisions
   go unplanned, so that the watch here reflects these tests alone."""
   first_use._watch.pending.clear()
-  first_use._watch.stop_if_done()
+  first_use._watch.stop()
 
 
 def _notes(caplog):
@@ -132,3 +132,21 @@ def test_notes_reach_stderr_without_logging_configured(capsys):
   finally:
     root.handlers[:] = saved
   assert "mjx_supportfield: a note" in capsys.readouterr().err
+
+
+def test_a_model_yet_to_collide_does_not_keep_the_watch(monkeypatch, caplog):
+  """Another model's step ends the wrapper (launches stop paying for it) while a model installed
+  later has yet to collide; that model's first collision is still planned and counted."""
+  a = load("convex_pile", nworld=1)
+  sf.install(a.mjm, a.m)
+  mjw.step(a.m, a.d)
+  b = load("convex_pile", nworld=1)
+  sf.install(b.mjm, b.m)
+  mjw.step(a.m, a.d)
+  assert wp_context.Module.load is LOAD and first_use.active  # b is still to collide
+  _pretend_uncached(monkeypatch)
+  with caplog.at_level(logging.INFO, logger="mjx_supportfield"):
+    mjw.step(b.m, b.d)
+  assert any("for the plugin's first collision" in n for n in _notes(caplog))
+  mjw.step(b.m, b.d)
+  assert wp_context.Module.load is LOAD and not first_use.active

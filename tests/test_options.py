@@ -143,11 +143,11 @@ def test_still_a_frozen_dataclass():
 def test_docstring_gives_each_fields_default_and_range():
   """Each field's entry in the docstring names its default (and, for numbers, its range)."""
   doc = Options.__doc__
+  starts = {f.name: doc.index(f"    {f.name}: ") for f in dataclasses.fields(Options)}
   entries = {}
-  for f in dataclasses.fields(Options):
-    start = doc.index(f"    {f.name}: ")
-    following = [doc.index(f"    {g.name}: ") for g in dataclasses.fields(Options) if doc.index(f"    {g.name}: ") > start]
-    entries[f.name] = " ".join(doc[start:min(following, default=len(doc))].split())
+  for name, start in starts.items():
+    end = min((s for s in starts.values() if s > start), default=len(doc))
+    entries[name] = " ".join(doc[start:end].split())
   for f in dataclasses.fields(Options):
     entry = entries[f.name]
     assert "Default" in entry or "(default)" in entry, f.name

@@ -13,6 +13,7 @@ import mujoco_warp as mjw
 import warp as wp
 from mujoco_warp._src import collision_driver
 
+from mjx_supportfield import first_use
 from mjx_supportfield.install import install
 from mjx_supportfield.options import Options
 
@@ -34,7 +35,7 @@ class Row:
 
 
 class Progress:
-  """A one-line progress indicator on stderr (no dependency; compile steps take minutes)."""
+  """A progress indicator on stderr (no dependency; compile steps take minutes)."""
 
   def __init__(self, total: int):
     self.total, self.done, self.t0 = total, 0, time.perf_counter()
@@ -44,10 +45,9 @@ class Progress:
     width = 30
     filled = int(width * self.done / self.total)
     elapsed = time.perf_counter() - self.t0
-    sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {elapsed:6.0f}s {what:50.50s}")
+    # a line each (not one redrawn line): notes on compiling kernels come between them
+    sys.stderr.write(f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {elapsed:6.0f}s {what}\n")
     sys.stderr.flush()
-    if self.done == self.total:
-      sys.stderr.write("\n")
 
 
 def settled_state(mjm: mujoco.MjModel, settle_steps: int) -> mujoco.MjData:
@@ -138,8 +138,11 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
       if impl == "plugin":
         install(mjm, m, options or Options())
       d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=ncon, njmax=njmax)
-      mjw.forward(m, d)  # compiles; creates the plugin's per-Data state outside the graph
-      mjw.step(m, d)
+      # compiles (noted; the note's watch is gone before the timing); creates the plugin's
+      # per-Data state outside the graph
+      with first_use.announce_compiles(f"{scene}, {impl}"):
+        mjw.forward(m, d)
+        mjw.step(m, d)
       wp.synchronize()
       mjw.collision(m, d)
       contacts = min(int(d.nacon.numpy()[0]), d.naconmax) / nworld
@@ -179,30 +182,102 @@ def format_table(rows: list[Row]) -> str:
 
 
 def device_name() -> str:
-  """The GPU's name (or the CPU's) for the results file."""
+  """The GPU's name, or "cpu" (short: benchmark scripts name their result files after it)."""
   device = wp.get_device()
   return device.name if device.is_cuda else (platform.processor() or "cpu")
 
 
+def cpu_model() -> str:
+  """The host CPU's model name (Linux: /proc/cpuinfo), or what ``platform`` knows."""
+  try:
+    with open("/proc/cpuinfo") as f:
+      for line in f:
+        if line.startswith("model name"):
+          return line.split(":", 1)[1].strip()
+  except OSError:
+    pass
+  return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def device_description() -> str:
+  """The device the timings ran on, for people: the GPU's name, or the CPU's model and cores."""
+  device = wp.get_device()
+  if device.is_cuda:
+    return device.name
+  return f"CPU: {cpu_model()} ({os.cpu_count()} cores)"
+
+
+# Timings average over at least this many launches: one launch's time is dominated by launch and
+# synchronisation overhead and by the clock's resolution.
+MIN_LAUNCHES = 100
+
+# World counts timed when none are given. On a GPU the counts where batching pays off; on the CPU a
+# step costs about nworld times one world's, so large counts take hours and tell nothing new.
+GPU_WORLDS = (1024, 4096, 8192)
+CPU_WORLDS = (1, 8, 64)
+
+
+def default_world_counts(device=None) -> tuple:
+  """World counts ``bench`` times when none are given: sized to the device (see GPU_WORLDS)."""
+  device = wp.get_device(device)
+  return GPU_WORLDS if device.is_cuda else CPU_WORLDS
+
+
 def write_json(rows: list[Row], path: str, extra: Optional[dict] = None) -> None:
-  """Writes {"gpu", "versions", "rows"} as specified by the benchmark issue (plus ``extra`` keys)."""
+  """Writes {"device", "versions", "rows"} (plus ``extra`` keys): ``device`` names the GPU, or the
+  CPU's model and cores (``device_description``)."""
   import importlib.metadata as md
 
   versions = {p: md.version(p) for p in ("mujoco", "mujoco-warp", "warp-lang")}
-  out = {"gpu": device_name(), "versions": versions, "rows": [dataclasses.asdict(r) for r in rows]}
+  out = {"device": device_description(), "versions": versions, "rows": [dataclasses.asdict(r) for r in rows]}
   with open(path, "w") as f:
     json.dump({**out, **(extra or {})}, f, indent=1)
 
 
-def plot(rows: list[dict], path: str) -> None:
-  """PNG of time vs nworld, both implementations, one panel per scene and stage (needs matplotlib)."""
+ROW_KEYS = ("scene", "nworld", "impl", "stage", "ms")
+
+
+def load_results(path: str) -> dict:
+  """Reads a bench results file (``bench --json``) for ``plot``.
+
+  Raises:
+    ValueError: one line naming the problem: no such file, not JSON, or not a bench results file
+      (a compare report, say).
+  """
+  if os.path.isdir(path):
+    raise ValueError(f"{path} is a directory, not a bench results file (bench --json writes one)")
+  try:
+    with open(path) as f:
+      data = json.load(f)
+  except FileNotFoundError:
+    raise ValueError(f"results file not found: {path}") from None
+  except (OSError, UnicodeDecodeError) as e:
+    raise ValueError(f"cannot read {path}: {e}") from None
+  except json.JSONDecodeError as e:
+    raise ValueError(f"{path} is not JSON ({e}); plot reads what 'mjx-supportfield bench --json' writes") from None
+  if not isinstance(data, dict) or not isinstance(data.get("rows"), list):
+    what = "a compare report" if isinstance(data, dict) and "impls" in data else "not a bench results file"
+    raise ValueError(f"{path} is {what}: plot needs the \"rows\" that 'mjx-supportfield bench --json' writes")
+  for i, row in enumerate(data["rows"]):
+    missing = [k for k in ROW_KEYS if not isinstance(row, dict) or k not in row]
+    if missing:
+      raise ValueError(f"{path}: row {i} lacks {', '.join(missing)}; not a bench results file")
+  return data
+
+
+def plot(rows: list[dict], path: str, device: Optional[str] = None) -> None:
+  """PNG of time vs nworld, both implementations, one panel per scene and stage (needs matplotlib).
+
+  Times start at 0 ms, so that the gap between the lines reads as the ratio it is; nworld is on a
+  log scale (powers of two). ``device`` (``device_description()``) goes in the title.
+  """
   import matplotlib
 
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
 
   scenes = sorted({r["scene"] for r in rows})
-  fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3.2 * len(scenes)), squeeze=False)
+  fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3.2 * len(scenes) + 0.4), squeeze=False)
   for i, scene in enumerate(scenes):
     for j, stage in enumerate(("collision", "step")):
       ax = axes[i][j]
@@ -211,9 +286,12 @@ def plot(rows: list[dict], path: str) -> None:
         if pts:
           ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=impl)
       ax.set_xscale("log", base=2)
+      ax.set_ylim(bottom=0)
       ax.set_title(f"{scene}: {stage}")
-      ax.set_xlabel("nworld")
-      ax.set_ylabel("ms")
+      ax.set_xlabel("nworld (log scale)")
+      ax.set_ylabel("ms per step")
       ax.legend()
+  if device:
+    fig.suptitle(f"mjx_supportfield vs stock MuJoCo Warp on {device}")
   fig.tight_layout()
   fig.savefig(path, dpi=100)

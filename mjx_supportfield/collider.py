@@ -574,8 +574,11 @@ class Collider:
 
   # --- diagnostics --------------------------------------------------------------------
 
-  def stats(self, d) -> dict:
+  def stats(self, d) -> "CollisionStats":
     """Host-side counters of the last collision on ``d`` (reads the device: not for graphs).
+
+    A ``CollisionStats``: a dict of the counters below (per-world lists included) that prints as a
+    summary (totals and the worlds with the most pairs or drops; ``summary()``).
 
     With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
     ``dropped_contacts`` counts the contacts beyond ``d.naconmax`` (all worlds together).
@@ -584,12 +587,14 @@ class Collider:
     ran one after another in their pair's thread (the same contacts, slower; see
     ``Options.hfield_mprs_per_pair``).
     """
+    from mjx_supportfield.stats import CollisionStats
+
     states = getattr(d, _STATE_ATTR, None)
     st = states.get(self) if states is not None else None
     if st is None:
-      return {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
-              "dropped_contacts": 0, "warm_start_misses": 0, "hfield_mprs_unqueued": 0}
-    return {
+      return CollisionStats({"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
+                             "dropped_contacts": 0, "warm_start_misses": 0, "hfield_mprs_unqueued": 0})
+    return CollisionStats({
       "pairs": int(st.npair.numpy()[0]),
       "pairs_per_world": np.minimum(st.world_npair.numpy(), self.max_pairs).tolist(),
       "dropped_pairs_per_world": st.ndropped.numpy().tolist(),
@@ -599,4 +604,4 @@ class Collider:
       "warm_start_misses": int(st.warm.misses.numpy()[0]) if self.options.warm_start else 0,
       # terrain MPRs that found the heightfield queue full and ran in their pair's thread
       "hfield_mprs_unqueued": int(st.hfield_count.numpy()[heightfield.COUNT_UNQUEUED]),
-    }
+    })

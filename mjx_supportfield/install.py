@@ -9,6 +9,7 @@ import warp as wp
 from mujoco_warp._src import collision_driver
 from mujoco_warp._src import io as mjw_io
 
+from mjx_supportfield import first_use
 from mjx_supportfield import warmstart
 from mjx_supportfield.collider import _ATTR
 from mjx_supportfield.collider import _STATE_ATTR
@@ -25,6 +26,12 @@ def _dispatch(m, d, awake_prev: Optional[wp.array] = None):
   collider = getattr(m, _ATTR, None)
   if collider is None:
     return _STOCK_COLLISION(m, d, awake_prev)
+  return _collide(collider, m, d, awake_prev)
+
+
+def _collide(collider: Collider, m, d, awake_prev: Optional[wp.array]):
+  if first_use.active:  # until each installed model's first step is done: notes on compiling kernels
+    return first_use.collide(collider, m, d, awake_prev)
   return collider.collision(m, d, awake_prev)
 
 
@@ -122,7 +129,9 @@ def install(mjm: mujoco.MjModel, m, options: Optional[Options] = None) -> Collid
   if getattr(m, _ATTR, None) is not None:
     raise ValueError("install: the plugin is already installed on this model; call uninstall(m) first")
   _check_values(mjm, m)
-  collider = Collider(mjm, m, options)
+  with first_use.stage("install (support fields and SDFs)"):
+    collider = Collider(mjm, m, options)
+  first_use.arm(collider)
   object.__setattr__(m, _ATTR, collider)
   _patch()
   return collider
@@ -136,6 +145,7 @@ def uninstall(m) -> None:
   """
   if getattr(m, _ATTR, None) is None:
     raise ValueError("uninstall: the plugin is not installed on this model")
+  first_use.disarm(getattr(m, _ATTR))
   object.__delattr__(m, _ATTR)
 
 
@@ -153,4 +163,4 @@ def collision(m, d, awake_prev: Optional[wp.array] = None) -> None:
   collider = getattr(m, _ATTR, None)
   if collider is None:
     raise ValueError("collision: the plugin is not installed on this model; call install(mjm, m) first")
-  collider.collision(m, d, awake_prev)
+  _collide(collider, m, d, awake_prev)

@@ -1,6 +1,9 @@
 """Tuning parameters of the plugin."""
 
+import collections.abc
 import dataclasses
+import difflib
+import functools
 import math
 
 SUPPORT_MODES = ("field", "refined", "exact")
@@ -10,52 +13,90 @@ BROADPHASES = ("auto", "nxn", "sap")
 NXN_MAX_PAIRS = 16384
 
 
+def _reject_unknown_fields(cls):
+  """Makes ``cls(name=...)`` with a name that is not a field raise ValueError naming it and listing
+  the fields, as ``from_dict`` does (a dataclass's own __init__ raises TypeError)."""
+  init = cls.__init__
+
+  @functools.wraps(init)
+  def __init__(self, *args, **kwargs):
+    unknown = sorted(set(kwargs) - _field_names(cls))
+    if unknown:
+      raise ValueError(_unknown_fields_message(cls, unknown))
+    init(self, *args, **kwargs)
+
+  cls.__init__ = __init__
+  return cls
+
+
+@_reject_unknown_fields
 @dataclasses.dataclass(frozen=True)
 class Options:
-  """Tuning parameters of the collision plugin; defaults follow the seed documents.
+  """Tuning parameters of the collision plugin. The defaults suit most models; each entry says
+  its default, its valid range and when to change it. An unknown field or an invalid value raises
+  ValueError naming the field (``Options(...)`` and ``Options.from_dict``).
 
   Attributes:
-    support_res: directions per axis of the support field (res x res cells per mesh).
-    support_mode: how a convex-mesh support query is answered: "field" (4-cell lookup),
-      "refined" (field vertex, then hill-climb on the convex-hull graph: exact), or "exact"
-      (exhaustive scan of the hull vertices).
-    broadphase: "nxn" (every pair MuJoCo's static filters keep, one thread per world and
-      pair), "sap" (sweep-and-prune: scales with the geoms, not their pairs) or "auto" (nxn
-      up to NXN_MAX_PAIRS such pairs).
-    max_collision_pairs: broad-phase pair budget per world; pairs beyond it are dropped,
-      counted and reported through ``d.overflow`` (``OverflowType.BROADPHASE``).
-    narrowphase: penetration of the convex pairs that are not analytic: "mpr" (MPR, refined
-      along its normal, warm-started) or "gjk" (GJK distance, EPA for overlapping cores).
-    mpr_iterations: iteration cap of each MPR (or GJK / EPA) loop.
-    mpr_tolerance: MPR convergence tolerance, relative to the pair's size.
-    mpr_refine: MPR reruns along the last normal (the shallowest answer wins); 0 = no reruns:
-      the penetration along the centre-to-centre line (or, warm-started, along the previous
-      normal). At any value an answer deeper than 0.1 x the pair's size is still checked along
-      both shapes' local axes.
-    sap_axis: axis (0, 1, 2) on which the sweep-and-prune projects the boxes.
-    multi_contact: more contacts per MPR pair by pose perturbation (not for spheres and
-      ellipsoids); analytic pairs keep MuJoCo's own multi-point routines either way.
-    max_contacts_per_pair: contacts per MPR pair with multi_contact (1 to 5).
-    mc_perturbation: tilt angle [rad] of the perturbed poses.
+    support_res: directions per axis of each convex mesh's support table (res x res cells per
+      mesh; memory grows with its square). Default 180, integer 4 to 4096. Lower it to save memory
+      on many large meshes; with support_mode="refined" the answer stays exact, only slower.
+    support_mode: how a convex mesh's support point (its farthest vertex along a direction) is
+      found. "refined" (default): the table's vertex, then a walk on the hull's vertex graph to the
+      exact answer. "field": the table's 4-cell lookup only (approximate, fastest). "exact": a scan
+      of every hull vertex (slow on large hulls; a reference).
+    broadphase: "auto" (default): nxn up to NXN_MAX_PAIRS (16384) geom pairs after MuJoCo's static
+      filters, sweep-and-prune beyond. "nxn": every such pair, one thread per world and pair.
+      "sap": sweep-and-prune, which scales with the geoms rather than their pairs. Force one only
+      to compare them.
+    max_collision_pairs: broad-phase pairs kept per world. Default 4096, integer 1 to 16777216
+      (2**24). Pairs beyond it are dropped, counted (``stats(d)``) and flagged in ``d.overflow``
+      (``OverflowType.BROADPHASE``); raise it when that happens, lower it to save memory (buffers
+      grow with nworld x max_collision_pairs).
+    narrowphase: the penetration solver of the convex pairs that have no analytic routine.
+      "mpr" (default): MPR, refined along its normal and warm-started. "gjk": GJK distance, EPA
+      when the shapes' cores overlap: slower, the better normal on deep mesh-mesh overlaps.
+    mpr_iterations: iteration cap of each MPR (or GJK / EPA) loop. Default 50, integer 1 to
+      10000. Rarely worth changing: MPR converges in far fewer on well-shaped hulls.
+    mpr_tolerance: MPR convergence tolerance, relative to the pair's size. Default 1e-6, 1e-12 to
+      1e-2. Larger: faster, coarser depths and normals.
+    mpr_refine: MPR reruns along the last normal (the shallowest answer wins). Default 4, integer
+      0 to 32. Fewer: faster, with less exact normals on curved surfaces; 0 = no reruns: the
+      penetration along the centre-to-centre line (or, warm-started, along the previous normal).
+      At any value an answer deeper than 0.1 x the pair's size is still checked along both
+      shapes' local axes.
+    sap_axis: axis (0, 1, 2: x, y, z) on which sweep-and-prune projects the boxes. Default 0. Pick
+      the axis along which the geoms spread most (not the vertical for a pile or a stack).
+    multi_contact: more contacts per MPR pair by tilting one shape slightly (not for spheres and
+      ellipsoids, which touch in one point); analytic pairs keep MuJoCo's own multi-point
+      routines either way. Default True. False: one contact per pair, faster, less stable resting
+      contact of faces and edges.
+    max_contacts_per_pair: contacts per MPR pair with multi_contact. Default 5, integer 1 to 5.
+    mc_perturbation: tilt angle [rad] of the perturbed poses. Default 1e-2, 1e-5 to 0.2. Rarely
+      worth changing.
     mc_tolerance: points closer than this fraction of the smaller geom's box size are duplicates.
+      Default 1e-2, 0 to 0.5.
     mpr_to_sdf_overlap_ratio: when MPR's depth exceeds this fraction of the smaller geom's
       bounding diameter (one shape largely inside the other), the contact comes from the
-      shapes' signed-distance fields if they find a shallower one; 0 turns the fallback off.
-      MPR only: with narrowphase="gjk", EPA's depth is exact and the fallback is not used.
-    sdf_res: cells along the longest side of a mesh hull's baked SDF.
+      shapes' signed-distance fields if they find a shallower one. Default 0.5, 0 to 100; 0 turns
+      the fallback off. MPR only: with narrowphase="gjk", EPA's depth is exact and the fallback is
+      not used.
+    sdf_res: cells along the longest side of a mesh hull's baked signed-distance field (for the
+      fallback above). Default 32, integer 8 to 256. Memory and install time grow with its cube.
     warm_start: MPR starts from each pair's contact normal of the previous collision call
       (kept per world and geom pair, dropped once the pair finds no contact); a warm start
-      that finds no contact is retried cold.
+      that finds no contact is retried cold. Default True. False: every call starts cold (its
+      answer then does not depend on the previous step).
     nonconvex_geoms: names of mesh geoms collided through their true triangles (an SDF of
-      the mesh) instead of MuJoCo's convex hull; also read from the MJCF custom text
-      ``mjx_supportfield.nonconvex`` (names separated by spaces).
-    nonconvex_sdf_res: cells along the longest side of a non-convex mesh's baked SDF.
+      the mesh) instead of MuJoCo's convex hull: bowls, cups, hooks. Default () (none); also read
+      from the MJCF custom text ``mjx_supportfield.nonconvex`` (names separated by spaces).
+    nonconvex_sdf_res: cells along the longest side of a non-convex mesh's baked SDF. Default 64,
+      integer 8 to 512. Raise it for thin walls or fine features.
     hfield_mprs_per_pair: room in the terrain MPR queue per heightfield pair, on average over
-      all worlds. A heightfield pair's MPRs (the triangle prisms and
-      terrain points that pass the cheap tests: about 10 for a geom over a few cells, a few
+      all worlds. Default 16, integer 1 to 4096. A heightfield pair's MPRs (the triangle prisms
+      and terrain points that pass the cheap tests: about 10 for a geom over a few cells, a few
       hundred over a hundred cells) run side by side from this queue; those that find it full
       run one after another in the pair's own thread: the same contacts, slower (counted in
-      the collider's stats as ``hfield_mprs_unqueued``).
+      the collider's stats as ``hfield_mprs_unqueued``; raise it when that count is large).
   """
 
   support_res: int = 180
@@ -109,11 +150,25 @@ class Options:
   @classmethod
   def from_dict(cls, values: dict) -> "Options":
     """Builds Options from a mapping; an unknown key raises ValueError naming it."""
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - known)
+    if not isinstance(values, collections.abc.Mapping):
+      raise ValueError(f"Options.from_dict: expected a mapping of field names to values, got {type(values).__name__}")
+    unknown = sorted((k for k in values if k not in _field_names(cls)), key=repr)
     if unknown:
-      raise ValueError(f"Options: unknown field(s) {', '.join(unknown)}; known fields: {', '.join(sorted(known))}")
+      raise ValueError(_unknown_fields_message(cls, unknown))
     return cls(**values)
+
+
+def _field_names(cls) -> set:
+  return {f.name for f in dataclasses.fields(cls)}
+
+
+def _unknown_fields_message(cls, unknown: list) -> str:
+  known = sorted(_field_names(cls))
+  hints = [f"{name!r} (did you mean {close[0]!r}?)"
+           if isinstance(name, str) and (close := difflib.get_close_matches(name, known, 1)) else repr(name)
+           for name in unknown]
+  return (f"Options: unknown field{'s' if len(unknown) > 1 else ''} {', '.join(hints)}; valid fields: "
+          f"{', '.join(known)}")
 
 
 def _check_int(name, value, lo, hi):

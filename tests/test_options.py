@@ -101,3 +101,56 @@ def test_from_dict_unknown_field(keys):
     Options.from_dict(values)
   for k in keys:
     assert k in str(info.value)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+  ({"foo": 1}, "'foo'"),
+  ({"warmstart": False}, "did you mean 'warm_start'"),
+  ({"support_res": 64, "zzz": 1, "aaa": 2}, "'aaa', 'zzz'"),
+])
+def test_unknown_field_is_a_value_error(kwargs, needle):
+  """Options(...) and Options.from_dict raise the same ValueError, naming the field and listing the
+  valid ones (a dataclass alone raises TypeError)."""
+  for make in (lambda: Options(**kwargs), lambda: Options.from_dict(kwargs)):
+    with pytest.raises(ValueError) as info:
+      make()
+    message = str(info.value)
+    assert needle in message and "valid fields:" in message
+    assert all(f.name in message for f in dataclasses.fields(Options))
+
+
+@pytest.mark.parametrize("values", [[("support_res", 64)], "support_res=64", None])
+def test_from_dict_needs_a_mapping(values):
+  with pytest.raises(ValueError, match="mapping"):
+    Options.from_dict(values)
+
+
+def test_still_a_frozen_dataclass():
+  """The check on names leaves pickling, equality, hashing, replace and the signature as they were."""
+  import inspect
+  import pickle
+
+  o = Options(support_res=64, nonconvex_geoms=["bowl"])
+  assert pickle.loads(pickle.dumps(o)) == o
+  assert hash(o) == hash(Options(support_res=64, nonconvex_geoms=("bowl",)))
+  assert o != Options()
+  assert dataclasses.replace(o, sap_axis=2).sap_axis == 2
+  with pytest.raises(ValueError, match="sap_axis"):
+    dataclasses.replace(o, sap_axis=3)
+  assert list(inspect.signature(Options).parameters) == [f.name for f in dataclasses.fields(Options)]
+
+
+def test_docstring_gives_each_fields_default_and_range():
+  """Each field's entry in the docstring names its default (and, for numbers, its range)."""
+  doc = Options.__doc__
+  starts = {f.name: doc.index(f"    {f.name}: ") for f in dataclasses.fields(Options)}
+  entries = {}
+  for name, start in starts.items():
+    end = min((s for s in starts.values() if s > start), default=len(doc))
+    entries[name] = " ".join(doc[start:end].split())
+  for f in dataclasses.fields(Options):
+    entry = entries[f.name]
+    assert "Default" in entry or "(default)" in entry, f.name
+    if f.type in ("int", "float", int, float) and f.name != "sap_axis":
+      assert " to " in entry, f.name
+  assert "seed" not in doc

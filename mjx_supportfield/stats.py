@@ -1,0 +1,79 @@
+"""What ``Collider.stats(d)`` returns: the counters of the last collision, readable at any nworld."""
+
+
+class CollisionStats(dict):
+  """The counters of the last collision on a Data: a dict, as before, that prints as a summary.
+
+  Keys (the raw values, per world where the name says so):
+    pairs: broad-phase pairs kept, all worlds together.
+    pairs_per_world: pairs kept in each world (a list of nworld counts).
+    dropped_pairs_per_world: pairs beyond ``Options.max_collision_pairs`` in each world.
+    nonfinite_worlds: worlds in which a geom pose held NaN or inf (they got no pairs).
+    dropped_contacts: contacts found beyond ``d.naconmax`` (all worlds together).
+    warm_start_misses: pairs whose warm-started MPR missed and ran again cold.
+    hfield_mprs_unqueued: terrain MPRs the heightfield queue had no room for.
+
+  ``str(stats)`` (and ``print``) gives ``summary()``: totals, and the few worlds with the most pairs
+  or drops, instead of three lists of nworld numbers; ``repr`` gives the totals on one line.
+  """
+
+  @property
+  def nworld(self) -> int:
+    """Worlds of the Data (0 before its first collision)."""
+    return len(self.get("pairs_per_world", ()))
+
+  def summary(self, worst: int = 3) -> str:
+    """Totals of each counter, with the ``worst`` worlds by pairs and by dropped pairs."""
+    if not self.nworld:
+      return "no collision has run on this Data yet"
+    pairs = self["pairs_per_world"]
+    dropped = self["dropped_pairs_per_world"]
+    nonfinite = self["nonfinite_worlds"]
+    spread = f"; most: {_worst(pairs, worst)}" if max(pairs) > min(pairs) else ""
+    lines = [f"{self['pairs']} broad-phase pairs in {self.nworld} world{'s' if self.nworld > 1 else ''} "
+             f"(per world: min {min(pairs)}, mean {sum(pairs) / len(pairs):.1f}, max {max(pairs)}{spread})"]
+    ndropped = sum(dropped)
+    if ndropped:
+      nworld = sum(1 for x in dropped if x)
+      lines.append(f"dropped pairs: {ndropped} in {nworld} world{'s' if nworld > 1 else ''} (most: "
+                   f"{_worst(dropped, worst)}); raise Options.max_collision_pairs")
+    else:
+      lines.append("dropped pairs: 0")
+    if self["dropped_contacts"]:
+      lines.append(f"dropped contacts: {self['dropped_contacts']} beyond naconmax; make the Data with a larger "
+                   "naconmax")
+    else:
+      lines.append("dropped contacts: 0")
+    if nonfinite:
+      shown = ", ".join(str(w) for w in nonfinite[:worst]) + (", ..." if len(nonfinite) > worst else "")
+      lines.append(f"worlds with NaN or inf geom poses: {len(nonfinite)} ({shown}); they got no pairs")
+    else:
+      lines.append("worlds with NaN or inf geom poses: 0")
+    lines.append(f"warm-start misses: {self['warm_start_misses']}")
+    if self["hfield_mprs_unqueued"]:
+      lines.append(f"heightfield MPRs beyond the queue: {self['hfield_mprs_unqueued']} (run one after another; "
+                   "raise Options.hfield_mprs_per_pair)")
+    return "\n".join(lines)
+
+  def __str__(self) -> str:
+    return self.summary()
+
+  def __repr__(self) -> str:
+    if not self.nworld:
+      return "CollisionStats(no collision yet)"
+    totals = {
+      "pairs": self["pairs"],
+      "nworld": self.nworld,
+      "dropped_pairs": sum(self["dropped_pairs_per_world"]),
+      "dropped_contacts": self["dropped_contacts"],
+      "nonfinite_worlds": len(self["nonfinite_worlds"]),
+      "warm_start_misses": self["warm_start_misses"],
+      "hfield_mprs_unqueued": self["hfield_mprs_unqueued"],
+    }
+    return f"CollisionStats({', '.join(f'{k}={v}' for k, v in totals.items())})"
+
+
+def _worst(per_world: list, count: int) -> str:
+  """'world 3: 20, world 7: 18' for the ``count`` largest values (ties: lower world first)."""
+  order = sorted(range(len(per_world)), key=lambda w: (-per_world[w], w))[:count]
+  return ", ".join(f"world {w}: {per_world[w]}" for w in order if per_world[w]) or "none"

@@ -1,22 +1,39 @@
-"""Multi-contact by pose perturbation: more points of a contact patch from the same MPR.
+"""Multi-contact: more points of a contact patch than MPR's (or GJK/EPA's) one.
 
-After MPR's contact (normal n, depth d0, point p0), shape A is tilted by +-eps about the two
-diagonals of the contact plane, around p0. A tilted A digs into B at another end of the
-patch; MPR finds the witness points there, A's is mapped back to A's true pose, and the
-point is kept when it still penetrates along n and is not a duplicate of one already kept.
-A tilt that lands back on a point already found (the faces meet at a larger angle than eps,
-so the same vertex stays deepest) is retried once, TILT_GROWTH times steeper: 0.09 rad at the
-default eps, about the 0.089 rad within which MuJoCo's multi-CCD takes two faces as touching.
+Face clipping (face_manifold) first. Where the contact normal n lies along a flat face of one
+shape (a box face, a cylinder's end, a hull polygon of MuJoCo's), that face is the reference
+and the other shape's feature facing it (its face most anti-parallel to the reference face,
+or the line of a cylinder's side or a capsule lying on it) the incident one: the incident
+polygon clipped to the reference face's side planes is the patch, and its corners below the
+reference plane are the contacts (MuJoCo's multi-CCD does the same from EPA's features).
+
+Pose perturbation for the rest (edge against edge, curved surfaces): after the first contact
+(normal n, depth d0, point p0), shape A is tilted by +-eps about the two diagonals of the
+contact plane, around p0. A tilted A digs into B at another end of the patch; MPR finds the
+witness points there, A's is mapped back to A's true pose, and the point is kept when it still
+penetrates along n and is not a duplicate of one already kept. A tilt that lands back on a
+point already found (the faces meet at a larger angle than eps, so the same vertex stays
+deepest) is retried once, TILT_GROWTH times steeper: 0.09 rad at the default eps, about the
+0.089 rad within which MuJoCo's multi-CCD takes two faces as touching.
 
 Most tilts need no MPR. The tilted MPR looks along n, and the face of A' - B its ray leaves
-through is usually a vertex of one shape against a flat face of the other (a box face, a
-cylinder's end, a hull polygon of MuJoCo's): A''s vertex through B's face that faces A, or B's
-vertex through A''s face that faces B. A face and a support query give each, and where the
-ray provably leaves through one of them the tilt's answer follows in closed form
-(tilt_closed_form); only the rest (edge against edge, curved sides) run the tilted MPR.
+through is usually a vertex of one shape against a flat face of the other: A''s vertex through
+B's face that faces A, or B's vertex through A''s face that faces B. A face and a support query
+give each, and where the ray provably leaves through one of them the tilt's answer follows in
+closed form (tilt_closed_form); only the rest (edge against edge, curved sides) run the tilted
+MPR.
 """
 
+import math
+
 import warp as wp
+from mujoco_warp._src.collision_gjk import EDGE_TOL
+from mujoco_warp._src.collision_gjk import FACE_TOL
+from mujoco_warp._src.collision_gjk import INTERSECT_TOL
+from mujoco_warp._src.collision_gjk import _area4
+from mujoco_warp._src.collision_gjk import _halfspace
+from mujoco_warp._src.collision_gjk import _plane_intersect
+from mujoco_warp._src.collision_gjk import _plane_normal
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 
@@ -67,14 +84,15 @@ def _tilted(a: Shape, pivot: wp.vec3, rot: wp.mat33) -> Shape:
 
 
 @wp.func
-def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float) -> int:
+def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float, slack: float) -> int:
   """1 + the support vertex's hull neighbours that tie with it (capped at 3): enough to tell a
   vertex from an edge from a face, without count_supports' flood fill."""
   best = mesh_support_index(ms, mesh, d, SUPPORT_REFINED)
   top = wp.dot(hull_point(ms, mesh, best), d)
-  tol = rtol * wp.max(wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh]), 1.0e-12)
+  extent = wp.max(wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh]), 1.0e-12)
   if ms.nbr_num.shape[0] == 0:
-    return count_supports(GeomType.MESH, wp.vec3(0.0), mesh, ms, d, rtol)
+    return count_supports(GeomType.MESH, wp.vec3(0.0), mesh, ms, d, wp.max(rtol, slack / extent))
+  tol = wp.max(rtol * extent, slack)
   g = ms.hull_adr[mesh] + best
   n = int(1)
   for k in range(ms.nbr_num[g]):
@@ -84,32 +102,34 @@ def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float) -> int:
 
 
 @wp.func
-def _ties(s: Shape, ms: MeshSupport, d_world: wp.vec3, rtol: float) -> int:
-  """How many support points a shape has in direction d within rtol of its extent: 1 for a
-  point, 2 for an edge or a line, 3 for a face (or more, counted, for boxes and meshes)."""
+def _ties(s: Shape, ms: MeshSupport, d_world: wp.vec3, rtol: float, slack: float) -> int:
+  """How many support points a shape has in direction d within rtol of its extent, or within
+  slack: 1 for a point, 2 for an edge or a line, 3 for a face (or more, counted, for boxes and
+  meshes)."""
   d = wp.normalize(wp.transpose(s.rot) @ d_world)
   if s.gtype == GeomType.BOX:
-    return count_supports(s.gtype, s.size, s.mesh, ms, d, rtol)
+    return count_supports(s.gtype, s.size, s.mesh, ms, d, wp.max(rtol, slack / wp.max(wp.length(s.size), 1.0e-12)))
   if s.gtype == GeomType.MESH:
-    return _mesh_ties(ms, s.mesh, d, rtol)
+    return _mesh_ties(ms, s.mesh, d, rtol, slack)
   if s.gtype == GeomType.CYLINDER:
-    extent = wp.length(wp.vec2(s.size[0], s.size[1]))
-    if wp.sqrt(wp.max(1.0 - d[2] * d[2], 0.0)) * s.size[0] <= rtol * extent:
+    tol = wp.max(rtol * wp.length(wp.vec2(s.size[0], s.size[1])), slack)
+    if wp.sqrt(wp.max(1.0 - d[2] * d[2], 0.0)) * s.size[0] <= tol:
       return 3  # an end disk
-    if wp.abs(d[2]) * s.size[1] <= rtol * extent:
+    if wp.abs(d[2]) * s.size[1] <= tol:
       return 2  # a line of the side
   if s.gtype == GeomType.CAPSULE:
-    if wp.abs(d[2]) * s.size[1] <= rtol * (s.size[0] + s.size[1]):
+    if wp.abs(d[2]) * s.size[1] <= wp.max(rtol * (s.size[0] + s.size[1]), slack):
       return 2
   return 1
 
 
 @wp.func
-def patch_possible(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, eps: float) -> bool:
-  """Whether tilting by eps can find more points: a tilt brings in a point only if it is within
-  eps x the shape's extent of the deepest along the normal, so both shapes must offer at least
-  an edge there (face-face, face-edge, parallel edges). Vertex contacts skip the tilted MPRs."""
-  return _ties(a, ms, normal, eps) >= 2 and _ties(b, ms, -normal, eps) >= 2
+def patch_possible(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, eps: float, depth: float) -> bool:
+  """Whether the contact can have more points than the first: both shapes must offer at least
+  an edge along the normal (face-face, face-edge, parallel edges), up to what a tilt by eps
+  brings in (eps x the shape's extent) or what sinks as deep as the first contact (``depth``,
+  margin band included). Vertex contacts skip the multi-contact stage."""
+  return _ties(a, ms, normal, eps, depth) >= 2 and _ties(b, ms, -normal, eps, depth) >= 2
 
 
 @wp.func
@@ -379,3 +399,394 @@ def perturbed_contacts(
       patch.n += 1
       break
   return patch
+
+
+# --- Face clipping ------------------------------------------------------------------------
+#
+# Where the contact normal lies along a flat face of one shape (within MuJoCo's multi-CCD
+# tolerance), the contact patch is that face (the reference) against the other shape's facing
+# feature (the incident face, or a line of a cylinder's side or a capsule): the incident polygon
+# clipped to the reference face's side planes, its corners below the reference plane. The
+# clipping follows MuJoCo's multi-CCD (collision_gjk._polygon_clip / _polygon_quad) step for step
+# and takes the faces' corners in MuJoCo's order, so a face on a face gives MuJoCo C's points;
+# its buffers are local, a thread's own, instead of MuJoCo Warp's scratch arrays.
+
+MAXPOLY = 40  # corners of a clipped polygon; a face pair with more goes to the tilts
+MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's bound)
+mat_poly = wp.types.matrix(shape=(2 * MAXPOLY, 3), dtype=float)  # two buffers: read one, write the other
+mat_manifold = wp.types.matrix(shape=(MAX_MANIFOLD, 3), dtype=float)
+vec_manifold = wp.types.vector(length=MAX_MANIFOLD, dtype=float)
+vec_chosen = wp.types.vector(length=MAX_MANIFOLD, dtype=int)
+
+# kinds of Face
+FACE_NONE = wp.constant(0)
+FACE_BOX = wp.constant(1)  # index: MuJoCo's box face number (0 +x, 1 -x, 2 +y, 3 -y, 4 +z, 5 -z)
+FACE_MESH = wp.constant(2)  # index: the hull polygon (global)
+FACE_DISK = wp.constant(3)  # index: 0 the cylinder's top end, 1 its bottom; MuJoCo's 16-gon
+FACE_SEGMENT = wp.constant(4)  # a line of a cylinder's side or of a capsule: p0, p1
+
+# corners of each box face in MuJoCo's order (collision_gjk._box_face): bit 0 set for +x, bit 1
+# for +y, bit 2 for +z
+_BOX_FACE_CORNERS = wp.constant(wp.types.vector(length=24, dtype=int)(
+  7, 3, 1, 5, 2, 6, 4, 0, 2, 3, 7, 6, 4, 5, 1, 0, 6, 7, 5, 4, 3, 2, 0, 1))
+_DISK_COS = wp.constant(wp.types.vector(length=16, dtype=float)(*[math.cos(i * math.pi / 8.0) for i in range(16)]))
+_DISK_SIN = wp.constant(wp.types.vector(length=16, dtype=float)(*[math.sin(i * math.pi / 8.0) for i in range(16)]))
+
+# Manifold.status
+CLIPPED = wp.constant(0)
+TILTS = wp.constant(1)  # no face pair (curved, edge on edge) or too many corners: the tilts
+
+
+@wp.struct
+class Face:
+  """A flat feature of a posed shape: a face (kind, index, corners) with its outward normal, or a
+  segment (p0, p1)."""
+
+  kind: int
+  index: int
+  nvert: int
+  normal: wp.vec3  # world, unit
+  p0: wp.vec3
+  p1: wp.vec3
+
+
+@wp.struct
+class Manifold:
+  """A clipped pair's contacts (status CLIPPED): midpoints and signed distances (negative:
+  penetration) of the true surfaces, margin band removed."""
+
+  status: int
+  n: int
+  pos: mat_manifold
+  dist: vec_manifold
+
+
+@wp.func
+def _no_face() -> Face:
+  f = Face()
+  f.kind = FACE_NONE
+  f.nvert = 0
+  return f
+
+
+@wp.func
+def _flat_face(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
+  """The flat face of s whose outward normal is nearest to world direction u (a box face, a
+  cylinder's end, a mesh's hull polygon around its support vertex); kind FACE_NONE where s has
+  none."""
+  lu = wp.transpose(s.rot) @ u
+  f = _no_face()
+  local = wp.vec3(0.0)
+  if s.gtype == GeomType.BOX:
+    k = int(0)
+    for i in range(1, 3):
+      if wp.abs(lu[i]) > wp.abs(lu[k]):
+        k = i
+    sign = wp.where(lu[k] >= 0.0, 1.0, -1.0)
+    local[k] = sign
+    f.kind = FACE_BOX
+    f.index = 2 * k + wp.where(sign > 0.0, 0, 1)
+    f.nvert = 4
+  elif s.gtype == GeomType.CYLINDER:
+    sign = wp.where(lu[2] >= 0.0, 1.0, -1.0)
+    local = wp.vec3(0.0, 0.0, sign)
+    f.kind = FACE_DISK
+    f.index = wp.where(sign > 0.0, 0, 1)
+    f.nvert = 16
+  elif s.gtype == GeomType.MESH:
+    poly = _polygon_toward(ms, s.mesh, mesh_support_index(ms, s.mesh, lu, mode), lu)
+    if poly >= 0:
+      local = ms.poly_normal[poly]
+      f.kind = FACE_MESH
+      f.index = poly
+      f.nvert = ms.poly_vert_num[poly]
+  f.normal = s.rot @ local
+  return f
+
+
+@wp.func
+def _incident(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
+  """The feature of s facing world direction u (toward the reference face): its face nearest u,
+  or for a cylinder lying on its side or a capsule the line of its surface along u; kind
+  FACE_NONE where s meets the reference face in a point of a curved surface."""
+  if s.gtype == GeomType.BOX or s.gtype == GeomType.MESH:
+    return _flat_face(s, ms, u, mode)
+  f = _no_face()
+  lu = wp.transpose(s.rot) @ u
+  if s.gtype == GeomType.CYLINDER and wp.abs(lu[2]) >= FACE_TOL:
+    return _flat_face(s, ms, u, mode)
+  if (s.gtype == GeomType.CYLINDER or s.gtype == GeomType.CAPSULE) and wp.abs(lu[2]) <= EDGE_TOL:
+    axis = s.rot @ wp.vec3(0.0, 0.0, s.size[1])
+    side = wp.vec3(0.0)
+    if s.gtype == GeomType.CYLINDER:
+      side = s.rot @ (s.size[0] * wp.normalize(wp.vec3(lu[0], lu[1], 0.0)))
+    else:
+      side = s.size[0] * u
+    f.kind = FACE_SEGMENT
+    f.nvert = 2
+    f.normal = u
+    f.p0 = s.pos + side - axis
+    f.p1 = s.pos + side + axis
+  return f
+
+
+@wp.func
+def _face_vertex(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
+  """Corner k of face f of s (world), in MuJoCo's order: clockwise seen from outside."""
+  if f.kind == FACE_BOX:
+    code = _BOX_FACE_CORNERS[4 * f.index + k]
+    local = wp.vec3(wp.where((code & 1) != 0, s.size[0], -s.size[0]), wp.where((code & 2) != 0, s.size[1], -s.size[1]),
+                    wp.where((code & 4) != 0, s.size[2], -s.size[2]))
+    return s.rot @ local + s.pos
+  if f.kind == FACE_MESH:
+    # MuJoCo's hull polygons run counter-clockwise; collision_gjk._mesh_face reverses them
+    return s.rot @ hull_point(ms, s.mesh, ms.poly_vert[ms.poly_vert_adr[f.index] + f.nvert - 1 - k]) + s.pos
+  if f.kind == FACE_DISK:
+    sign = wp.where(f.index != 0, -1.0, 1.0)
+    local = wp.vec3(s.size[0] * _DISK_COS[k], -sign * s.size[0] * _DISK_SIN[k], sign * s.size[1])
+    return s.rot @ local + s.pos
+  return wp.where(k == 0, f.p0, f.p1)
+
+
+@wp.func
+def _row(p: mat_poly, i: int) -> wp.vec3:
+  return wp.vec3(p[i, 0], p[i, 1], p[i, 2])
+
+
+@wp.func
+def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
+  """collision_gjk._polygon_quad on a local buffer: the corners (indices from base) of a
+  quadrilateral of largest area in the convex polygon of n > 4 corners at p[base:]."""
+  b = int(1)
+  c = int(2)
+  d = int(3)
+  res = wp.vec4i(0, b, c, d)
+  m = _area4(_row(p, base), _row(p, base + b), _row(p, base + c), _row(p, base + d))
+  for a in range(n):
+    pa = _row(p, base + a)
+    while True:
+      m_next = _area4(pa, _row(p, base + b), _row(p, base + c), _row(p, base + (d + 1) % n))
+      if m_next <= m:
+        break
+      m = m_next
+      d = (d + 1) % n
+      res = wp.vec4i(a, b, c, d)
+      while True:
+        m_next = _area4(pa, _row(p, base + b), _row(p, base + (c + 1) % n), _row(p, base + d))
+        if m_next <= m:
+          break
+        m = m_next
+        c = (c + 1) % n
+        res = wp.vec4i(a, b, c, d)
+      while True:
+        m_next = _area4(pa, _row(p, base + (b + 1) % n), _row(p, base + c), _row(p, base + d))
+        if m_next <= m:
+          break
+        m = m_next
+        b = (b + 1) % n
+        res = wp.vec4i(a, b, c, d)
+    if b == a:
+      b = (b + 1) % n
+      if c == b:
+        c = (c + 1) % n
+        if d == c:
+          d = (d + 1) % n
+  return res
+
+
+@wp.func
+def _deepest_first(p: mat_poly, base: int, n: int, normal: wp.vec3, flat: bool, max_contacts: int
+                   ) -> tuple[vec_chosen, int]:
+  """The deepest of the n corners at p[base:] (the lowest along the reference face's normal),
+  then, where the incident face is tilted (not ``flat``), its two neighbours, the deeper first:
+  an incident edge lying on the reference face ends there. Then each time the corner farthest
+  from those chosen."""
+  chosen = vec_chosen()
+  deepest = int(0)
+  for i in range(1, n):
+    if wp.dot(_row(p, base + i), normal) < wp.dot(_row(p, base + deepest), normal):
+      deepest = i
+  chosen[0] = deepest
+  count = int(1)
+  if not flat:
+    prev = (deepest + n - 1) % n
+    after = (deepest + 1) % n
+    if wp.dot(_row(p, base + prev), normal) < wp.dot(_row(p, base + after), normal):
+      after = prev
+      prev = (deepest + 1) % n
+    chosen[1] = after
+    count = wp.min(max_contacts, 2)
+    if count < max_contacts:
+      chosen[2] = prev
+      count = 3
+  while count < max_contacts:
+    best = int(0)
+    best_dist = float(-1.0)
+    for i in range(n):
+      nearest = float(1.0e30)
+      for j in range(count):
+        nearest = wp.min(nearest, wp.length_sq(_row(p, base + i) - _row(p, base + chosen[j])))
+      if nearest > best_dist:
+        best = i
+        best_dist = nearest
+    chosen[count] = best
+    count += 1
+  return chosen, count
+
+
+@wp.func
+def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.vec3, flat: bool, max_contacts: int
+                    ) -> tuple[vec_chosen, int]:
+  """Which of the n clipped corners at p[base:] become contacts: all up to max_contacts; a
+  clipped segment's two farthest; on a face parallel to the reference one (``flat``, as MuJoCo
+  takes a face on a face) MuJoCo's quadrilateral of largest area plus, as a fifth contact, the
+  deepest corner; else (and below four contacts) the deepest corners first (_deepest_first)."""
+  chosen = vec_chosen()
+  count = int(0)
+  if segment and n > 2:
+    ends = wp.vec2i(0, 1)
+    far = float(0.0)
+    for i in range(n):
+      for j in range(i + 1, n):
+        d2 = wp.length_sq(_row(p, base + j) - _row(p, base + i))
+        if d2 > far:
+          far = d2
+          ends = wp.vec2i(i, j)
+    chosen[0] = ends[0]
+    chosen[1] = ends[1]
+    count = int(2)
+  elif n <= max_contacts:
+    for i in range(n):
+      chosen[i] = i
+    count = n
+  elif flat and max_contacts >= 4:
+    deepest = int(0)
+    for i in range(1, n):
+      if wp.dot(_row(p, base + i), normal) < wp.dot(_row(p, base + deepest), normal):
+        deepest = i
+    quad = _polygon_quad(p, base, n)
+    for i in range(4):
+      chosen[i] = quad[i]
+    count = int(4)
+    if max_contacts > 4 and deepest != quad[0] and deepest != quad[1] and deepest != quad[2] and deepest != quad[3]:
+      chosen[4] = deepest
+      count = int(5)
+  else:
+    chosen, count = _deepest_first(p, base, n, normal, flat, max_contacts)
+  return chosen, count
+
+
+@wp.func
+def _clipped(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, band: float, max_contacts: int,
+             floor: float) -> Manifold:
+  """The incident feature clipped to the reference face's side planes (collision_gjk._polygon_clip),
+  the corners within ``band`` of the reference plane, reduced to max_contacts (_chosen_corners).
+  Each contact lies midway between its corner and the corner's foot on the reference plane, its
+  distance the corner's height over that plane, no deeper than ``floor``.
+
+  The polygons are taken relative to the reference face's first corner: in world coordinates
+  float32 rounding moved clipped corners of a cylinder's end across the side planes they lie on
+  and changed which quadrilateral _polygon_quad picks."""
+  out = Manifold()
+  out.status = CLIPPED
+  out.n = 0
+  m = ref.normal
+  origin = _face_vertex(ref_shape, ms, ref, 0)
+  poly = mat_poly()
+  for k in range(inc.nvert):
+    v = _face_vertex(inc_shape, ms, inc, k) - origin
+    for c in range(3):
+      poly[k, c] = v[c]
+  src = int(0)
+  npoly = inc.nvert
+  a = wp.vec3(0.0)
+  for e in range(ref.nvert):
+    b = _face_vertex(ref_shape, ms, ref, (e + 1) % ref.nvert) - origin
+    pd, pn = _plane_normal(a, b, m)
+    dst = MAXPOLY - src
+    nclip = int(0)
+    for i in range(npoly):
+      p = _row(poly, src + i)
+      q = _row(poly, src + (i + 1) % npoly)
+      inside1 = _halfspace(a, pn, p)
+      inside2 = _halfspace(a, pn, q)
+      if inside1 and not inside2 or inside2 and not inside1:
+        t = _plane_intersect(pn, pd, p, q)
+        if t > -INTERSECT_TOL and t < 1.0 + INTERSECT_TOL and nclip < MAXPOLY:
+          x = p + wp.clamp(t, 0.0, 1.0) * (q - p)
+          for c in range(3):
+            poly[dst + nclip, c] = x[c]
+          nclip += 1
+      if inside2 and nclip < MAXPOLY:
+        for c in range(3):
+          poly[dst + nclip, c] = q[c]
+        nclip += 1
+    src = dst
+    npoly = nclip
+    a = b
+  # the corners near enough to the reference plane, in order
+  kept = int(0)
+  for i in range(npoly):
+    x = _row(poly, src + i)
+    if wp.dot(x, m) <= band:
+      for c in range(3):
+        poly[src + kept, c] = x[c]
+      kept += 1
+  flat = inc.kind != FACE_SEGMENT and wp.dot(inc.normal, m) <= -FACE_TOL
+  chosen, count = _chosen_corners(poly, src, kept, inc.kind == FACE_SEGMENT, m, flat, max_contacts)
+  for k in range(count):
+    x = _row(poly, src + chosen[k])
+    h = wp.dot(x, m)
+    pos = origin + x - 0.5 * h * m
+    for c in range(3):
+      out.pos[k, c] = pos[c]
+    out.dist[k] = wp.max(h, floor)
+  out.n = count
+  return out
+
+
+@wp.func
+def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, max_contacts: int) -> Manifold:
+  """The contacts of A and B by face clipping, where the first contact's normal n (from A to B)
+  lies along a flat face of one of them (within MuJoCo's multi-CCD tolerance FACE_TOL): that
+  face is the reference, the other shape's feature facing it the incident one. Where both
+  shapes offer such a face and the two are parallel (within FACE_TOL), A's is the reference,
+  as in MuJoCo. Status TILTS where neither does, the other shape meets the face in a point
+  of a curved surface, or the polygons have more than MAXPOLY corners together.
+
+  A is grown by its inflate (the margin band, as the narrow phase poses it); the faces are the
+  true ones and the band widens the depth at which a corner still counts.
+  """
+  out = Manifold()
+  out.status = TILTS
+  out.n = 0
+  band = a.inflate
+  bare = a
+  bare.inflate = 0.0
+  n = first.normal
+  fa = _flat_face(bare, ms, n, mode)
+  fb = _flat_face(b, ms, -n, mode)
+  ca = float(-2.0)
+  cb = float(-2.0)
+  if fa.kind != FACE_NONE:
+    ca = wp.dot(fa.normal, n)
+  if fb.kind != FACE_NONE:
+    cb = wp.dot(fb.normal, -n)
+  if wp.max(ca, cb) < FACE_TOL:
+    return out
+  floor = band - first.depth  # no corner deeper than the first contact
+  max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
+  # a face on a face (MuJoCo's test: the two faces anti-parallel within FACE_TOL): A's is the
+  # reference, as in MuJoCo; else the face along n
+  face_face = ca >= FACE_TOL and cb >= FACE_TOL and wp.dot(fa.normal, fb.normal) <= -FACE_TOL
+  if ca >= FACE_TOL and (face_face or ca >= cb):
+    inc = _incident(b, ms, -fa.normal, mode)
+    if inc.kind != FACE_NONE and fa.nvert + inc.nvert <= MAXPOLY:
+      out = _clipped(bare, fa, b, inc, ms, band, max_contacts, floor)
+  else:
+    inc = _incident(bare, ms, -fb.normal, mode)
+    if inc.kind != FACE_NONE and fb.nvert + inc.nvert <= MAXPOLY:
+      out = _clipped(b, fb, bare, inc, ms, band, max_contacts, floor)
+  if out.status == CLIPPED and out.n == 0:
+    out.status = TILTS  # nothing within the band: not the face the first contact is on
+  return out

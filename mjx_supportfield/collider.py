@@ -33,8 +33,9 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 _ATTR = "_mjx_supportfield_collider"
 _STATE_ATTR = "_mjx_supportfield_state"
 _GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
-# multi-contact pairs per world whose tilts run in parallel threads (narrowphase.tilt_kernel);
-# pairs beyond run them in patch_kernel's thread: same result, only slower
+# multi-contact pairs per world left to the tilts (no face clipping) whose tilts run in parallel
+# threads (narrowphase.tilt_kernel); pairs beyond run them in patch_kernel's thread: same
+# result, only slower
 _TILT_PAIRS_PER_WORLD = 32
 
 

@@ -523,8 +523,9 @@ def convex_kernel(use_gjk: bool):
     nacon_out: wp.array(dtype=int),
   ):
     """Contacts of convex pairs by MPR (or GJK/EPA) on the shapes' support functions: the
-    deepest point, then up to max_contacts - 1 more by pose perturbation (not for spheres and
-    ellipsoids, where one point is the whole contact). With warm_start, MPR starts from the
+    deepest point; a pair that may touch in more points (not spheres and ellipsoids, where one
+    point is the whole contact) is queued for manifold_kernel instead, which adds up to
+    max_contacts - 1 more. With warm_start, MPR starts from the
     pair's normal of the previous call and falls back to a cold start when that misses."""
     tid = wp.tid()
     now = ws_stamp[0]
@@ -813,11 +814,12 @@ def tilt_kernel(
   tilt_count: wp.array(dtype=int),
   tilt_queue: wp.array(dtype=int),
 ):
-  """Both attempts of each of the four tilts of the pairs manifold_kernel queued for the tilts
-  (row q of tilt_result: the q-th of them), one thread an attempt, in closed form (multicontact.tilt_closed_form); the attempts it cannot answer are
-  queued for tilt_mpr_kernel, so the tilted MPRs run on dense warps. The steeper attempt is
-  computed whether or not patch_kernel's replay needs it: on the pile and on aloha_pot 84 % of
-  the first attempts land back on the first contact and need it."""
+  """Both attempts of each of the four tilts of the pairs manifold_kernel left to the tilts
+  (row q of tilt_result: the q-th of them), one thread an attempt, in closed form
+  (multicontact.tilt_closed_form); the attempts it cannot answer are queued for tilt_mpr_kernel,
+  so the tilted MPRs run on dense warps. The steeper attempt is computed whether or not
+  patch_kernel's replay needs it: on the pile and on aloha_pot 84 % of the first attempts land
+  back on the first contact and need it."""
   tid = wp.tid()
   nattempt = 2 * NPERTURB
   for j in range(tid, wp.min(tilt_pair_count[0], tilt_result.shape[0]) * nattempt, nthread):

@@ -62,6 +62,8 @@ UNKNOWN = wp.constant(1.0e30)  # depth of a tilt the closed form cannot answer: 
 # corner sitting on a face's edge is on the face up to float32 noise
 ON_FACE_TOL = 1.0e-5
 
+# polygons whose normals' dot products with a direction differ by less are coplanar pieces
+COPLANAR = 1.0e-5
 mat43 = wp.types.matrix(shape=(4, 3), dtype=float)
 
 
@@ -198,16 +200,21 @@ def tilt_mpr(
 @wp.func
 def _polygon_toward(ms: MeshSupport, mesh: int, vertex: int, u: wp.vec3) -> int:
   """The hull polygon (global index) around hull vertex ``vertex`` whose normal is nearest to
-  direction u (mesh frame); -1 when the mesh has no polygons."""
+  direction u (mesh frame); -1 when the mesh has no polygons. Of coplanar polygons (MuJoCo
+  leaves some faces split, a dodecahedron's pentagon into a triangle and a quadrilateral) the
+  one with more corners."""
   g = ms.hull_adr[mesh] + vertex
   best = int(-1)
   best_dot = float(-2.0)
+  best_num = int(0)
   for k in range(ms.vert_poly_num[g]):
     p = ms.poly_adr[mesh] + ms.vert_poly[ms.vert_poly_adr[g] + k]
     c = wp.dot(ms.poly_normal[p], u)
-    if c > best_dot and ms.poly_vert_num[p] >= 3:
+    num = ms.poly_vert_num[p]
+    if num >= 3 and (c > best_dot + COPLANAR or (c > best_dot - COPLANAR and num > best_num)):
       best = p
       best_dot = c
+      best_num = num
   return best
 
 
@@ -435,6 +442,11 @@ _DISK_SIN = wp.constant(wp.types.vector(length=16, dtype=float)(*[math.sin(i * m
 # Manifold.status
 CLIPPED = wp.constant(0)
 TILTS = wp.constant(1)  # no face pair (curved, edge on edge) or too many corners: the tilts
+QUAD_GAIN = 1.0e-3  # _largest_quad moves a corner of MuJoCo's quadrilateral for this much more area
+QUAD_SWEEPS = 4  # and sweeps over the four corners at most this often
+# the first contact joins the clipped ones when they are all shallower than it by this fraction
+# of its depth (a reference face 5 degrees off the normal measures depths 0.4 % apart)
+MISSED_DEPTH = 0.1
 
 
 @wp.struct
@@ -556,7 +568,7 @@ def _row(p: mat_poly, i: int) -> wp.vec3:
 @wp.func
 def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
   """collision_gjk._polygon_quad on a local buffer: the corners (indices from base) of a
-  quadrilateral of largest area in the convex polygon of n > 4 corners at p[base:]."""
+  quadrilateral of locally largest area in the convex polygon of n > 4 corners at p[base:]."""
   b = int(1)
   c = int(2)
   d = int(3)
@@ -592,6 +604,38 @@ def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
         if d == c:
           d = (d + 1) % n
   return res
+
+
+@wp.func
+def _quad_area(p: mat_poly, base: int, q: wp.vec4i) -> float:
+  return _area4(_row(p, base + q[0]), _row(p, base + q[1]), _row(p, base + q[2]), _row(p, base + q[3]))
+
+
+@wp.func
+def _largest_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
+  """MuJoCo's quadrilateral (_polygon_quad), then each corner moved, in turn, to the corner
+  between its two neighbours that enlarges the area most, while that gains more than QUAD_GAIN:
+  from its fixed start MuJoCo's climb can stop at half the largest area (a carton's bottom, a
+  square with chamfered corners). Ties keep MuJoCo's choice."""
+  quad = _polygon_quad(p, base, n)
+  area = _quad_area(p, base, quad)
+  moves = int(1)
+  sweeps = int(0)
+  while moves > 0 and sweeps < QUAD_SWEEPS:
+    moves = int(0)
+    sweeps += 1
+    for j in range(4):
+      lo = quad[(j + 3) % 4]
+      span = (quad[(j + 1) % 4] - lo + n) % n
+      for k in range(1, span):
+        trial = quad
+        trial[j] = (lo + k) % n
+        trial_area = _quad_area(p, base, trial)
+        if trial_area > area * (1.0 + QUAD_GAIN):
+          quad = trial
+          area = trial_area
+          moves += 1
+  return quad
 
 
 @wp.func
@@ -664,7 +708,7 @@ def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.ve
     for i in range(1, n):
       if wp.dot(_row(p, base + i), normal) < wp.dot(_row(p, base + deepest), normal):
         deepest = i
-    quad = _polygon_quad(p, base, n)
+    quad = _largest_quad(p, base, n)
     for i in range(4):
       chosen[i] = quad[i]
     count = int(4)
@@ -789,4 +833,17 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
       out = _clipped(b, fb, bare, inc, ms, band, max_contacts, floor)
   if out.status == CLIPPED and out.n == 0:
     out.status = TILTS  # nothing within the band: not the face the first contact is on
+  if out.status == CLIPPED:
+    deepest = float(1.0e30)
+    for k in range(out.n):
+      deepest = wp.min(deepest, out.dist[k])
+    if deepest > floor + MISSED_DEPTH * first.depth:
+      # the clipped corners miss the first contact (an edge crossing the reference face's rim
+      # beside the incident face): it takes the last place
+      k = wp.min(out.n, max_contacts - 1)
+      pos = first.pos - 0.5 * band * n
+      for c in range(3):
+        out.pos[k, c] = pos[c]
+      out.dist[k] = floor
+      out.n = k + 1
   return out

@@ -442,8 +442,8 @@ _DISK_SIN = wp.constant(wp.types.vector(length=16, dtype=float)(*[math.sin(i * m
 # Manifold.status
 CLIPPED = wp.constant(0)
 TILTS = wp.constant(1)  # no face pair (curved, edge on edge) or too many corners: the tilts
-QUAD_GAIN = 1.0e-3  # _largest_quad moves a corner of MuJoCo's quadrilateral for this much more area
-QUAD_SWEEPS = 4  # and sweeps over the four corners at most this often
+QUAD_TIE = 1.0e-6  # relative area below which two quadrilaterals tie (float32 rounding)
+FIFTH_TIE = 1.0e-3  # and two fifth corners (the middle of an arc of a round end has two)
 # the first contact joins the clipped ones when they are all shallower than it by this fraction
 # of its depth (a reference face 5 degrees off the normal measures depths 0.4 % apart)
 MISSED_DEPTH = 0.1
@@ -568,7 +568,9 @@ def _row(p: mat_poly, i: int) -> wp.vec3:
 @wp.func
 def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
   """collision_gjk._polygon_quad on a local buffer: the corners (indices from base) of a
-  quadrilateral of locally largest area in the convex polygon of n > 4 corners at p[base:]."""
+  quadrilateral of locally largest area in the convex polygon of n > 4 corners at p[base:]. A
+  corner moves on only for QUAD_TIE more area: on a round end (equal quadrilaterals) float32
+  rounding chose another one every step, and a cylinder resting on its end crept."""
   b = int(1)
   c = int(2)
   d = int(3)
@@ -578,21 +580,21 @@ def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
     pa = _row(p, base + a)
     while True:
       m_next = _area4(pa, _row(p, base + b), _row(p, base + c), _row(p, base + (d + 1) % n))
-      if m_next <= m:
+      if m_next <= m * (1.0 + QUAD_TIE):
         break
       m = m_next
       d = (d + 1) % n
       res = wp.vec4i(a, b, c, d)
       while True:
         m_next = _area4(pa, _row(p, base + b), _row(p, base + (c + 1) % n), _row(p, base + d))
-        if m_next <= m:
+        if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
         c = (c + 1) % n
         res = wp.vec4i(a, b, c, d)
       while True:
         m_next = _area4(pa, _row(p, base + (b + 1) % n), _row(p, base + c), _row(p, base + d))
-        if m_next <= m:
+        if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
         b = (b + 1) % n
@@ -607,35 +609,23 @@ def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
 
 
 @wp.func
-def _quad_area(p: mat_poly, base: int, q: wp.vec4i) -> float:
-  return _area4(_row(p, base + q[0]), _row(p, base + q[1]), _row(p, base + q[2]), _row(p, base + q[3]))
-
-
-@wp.func
-def _largest_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
-  """MuJoCo's quadrilateral (_polygon_quad), then each corner moved, in turn, to the corner
-  between its two neighbours that enlarges the area most, while that gains more than QUAD_GAIN:
-  from its fixed start MuJoCo's climb can stop at half the largest area (a carton's bottom, a
-  square with chamfered corners). Ties keep MuJoCo's choice."""
-  quad = _polygon_quad(p, base, n)
-  area = _quad_area(p, base, quad)
-  moves = int(1)
-  sweeps = int(0)
-  while moves > 0 and sweeps < QUAD_SWEEPS:
-    moves = int(0)
-    sweeps += 1
-    for j in range(4):
-      lo = quad[(j + 3) % 4]
-      span = (quad[(j + 1) % 4] - lo + n) % n
-      for k in range(1, span):
-        trial = quad
-        trial[j] = (lo + k) % n
-        trial_area = _quad_area(p, base, trial)
-        if trial_area > area * (1.0 + QUAD_GAIN):
-          quad = trial
-          area = trial_area
-          moves += 1
-  return quad
+def _widest_fifth(p: mat_poly, base: int, n: int, quad: wp.vec4i) -> int:
+  """The corner (index from base) that adds most area to the quadrilateral ``quad`` of the
+  convex polygon of n corners at p[base:] (it lies between two of the quad's corners, and adds
+  the triangle it makes with them), or -1 when none adds any."""
+  best = int(-1)
+  gain = float(0.0)
+  for j in range(4):
+    lo = quad[j]
+    hi = quad[(j + 1) % 4]
+    span = (hi - lo + n) % n
+    for k in range(1, span):
+      i = (lo + k) % n
+      g = wp.length(wp.cross(_row(p, base + i) - _row(p, base + lo), _row(p, base + hi) - _row(p, base + lo)))
+      if g > gain * (1.0 + FIFTH_TIE):
+        best = i
+        gain = g
+  return best
 
 
 @wp.func
@@ -684,7 +674,10 @@ def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.ve
   """Which of the n clipped corners at p[base:] become contacts: all up to max_contacts; a
   clipped segment's two farthest; on a face parallel to the reference one (``flat``, as MuJoCo
   takes a face on a face) MuJoCo's quadrilateral of largest area plus, as a fifth contact, the
-  deepest corner; else (and below four contacts) the deepest corners first (_deepest_first)."""
+  corner that widens it most (_polygon_quad climbs from a fixed start to a local maximum, half
+  the largest area on a square with chamfered corners such as a carton's bottom; MuJoCo C's own
+  choice among equal quadrilaterals of a round end is float rounding's); else (and below four
+  contacts) the deepest corners first (_deepest_first)."""
   chosen = vec_chosen()
   count = int(0)
   if segment and n > 2:
@@ -704,16 +697,15 @@ def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.ve
       chosen[i] = i
     count = n
   elif flat and max_contacts >= 4:
-    deepest = int(0)
-    for i in range(1, n):
-      if wp.dot(_row(p, base + i), normal) < wp.dot(_row(p, base + deepest), normal):
-        deepest = i
-    quad = _largest_quad(p, base, n)
+    quad = _polygon_quad(p, base, n)
     for i in range(4):
       chosen[i] = quad[i]
     count = int(4)
-    if max_contacts > 4 and deepest != quad[0] and deepest != quad[1] and deepest != quad[2] and deepest != quad[3]:
-      chosen[4] = deepest
+    fifth = int(-1)
+    if max_contacts > 4:
+      fifth = _widest_fifth(p, base, n, quad)
+    if fifth >= 0:
+      chosen[4] = fifth
       count = int(5)
   else:
     chosen, count = _deepest_first(p, base, n, normal, flat, max_contacts)

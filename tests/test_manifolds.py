@@ -80,6 +80,8 @@ XML = f"""
     <body pos="1.51 2.02 {TOP + H - DEPTH}" euler="0 0 20"><freejoint/><geom name="boxmesh_hi" type="box" size="{H} {H} {H}"/></body>
     <geom name="medge_lo" pos="2 2 1.05" type="box" size="{H} {H} {H}"/>
     <body pos="2 2 1.169"><freejoint/><geom name="medge_hi" type="mesh" mesh="cube" euler="0 45 0"/></body>
+    <geom name="cyltilt_lo" pos="3 2 1.05" type="box" size="{H} {H} {H}"/>
+    <body pos="3 2 1.1488" euler="-2 0.5 30"><freejoint/><geom name="cyltilt_hi" type="cylinder" size="{CYL_R} {CYL_H}"/></body>
     <geom name="cylside_lo" pos="2.5 2 1.05" type="box" size=".08 .08 {H}"/>
     <body pos="2.5 2 {TOP + CYL_R - DEPTH}" euler="0 90 0"><freejoint/><geom name="cylside_hi" type="cylinder" size="{CYL_R} {CYL_H}"/></body>
   </worldbody>
@@ -202,6 +204,12 @@ LINES = {
   "cylinder side on box": Case("cylside_lo", "cylside_hi", DEPTH, TOP - DEPTH / 2,
                                _flat([(2.5 - CYL_H, 2), (2.5 + CYL_H, 2)], TOP - DEPTH / 2)),
 }
+# a cylinder's end 2 degrees off a box's face: its 16-gon's quadrilaterals differ in area, so
+# MuJoCo C's choice is not float rounding's (as on the flat end, where every fourth corner of
+# the 16-gon makes an equal square)
+TILTED_END = Case("cyltilt_lo", "cyltilt_hi", 0.0, 0.0)
+ROUND_END = "cylinder end on box"
+EDGE_16 = 2.0 * CYL_R * np.sin(np.pi / 16.0)  # a side of the 16-gon MuJoCo takes for a cylinder's end
 MUJOCO_MPR_COUNT = 4  # MuJoCo C's multiccd on the face cases
 NARROWPHASES = ("mpr", "gjk")
 
@@ -224,15 +232,16 @@ def _select(geom, dist, pos, normal, a, b):
 
 def collide(narrowphase: str = "mpr") -> dict:
   """{case name: (plugin Manifold, MuJoCo C Manifold)} from one collision of the scene."""
-  sim = load(XML)
+  sim = load(XML, naconmax=256)
   mjm, mjd = sim.mjm, sim.mjd
   sf.install(mjm, sim.m, sf.Options(narrowphase=narrowphase))
   sf.collision(sim.m, sim.d)
+  assert int(sim.d.nacon.numpy()[0]) <= sim.d.naconmax, "contacts beyond the buffer: raise naconmax"
   c = contacts(sim.d, 0)
   sf.uninstall(sim.m)
   n, ref = mjd.ncon, mjd.contact
   out = {}
-  for name, case in {**ANALYTIC, "cylinder-plane end": CYL_PLANE, **MPR, **LINES}.items():
+  for name, case in {**ANALYTIC, "cylinder-plane end": CYL_PLANE, **MPR, **LINES, "cylinder end tilted": TILTED_END}.items():
     a = int(mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, case.a))
     b = int(mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, case.b))
     got = _select(c.geom, c.dist, c.pos, c.normal, a, b)
@@ -315,16 +324,19 @@ def test_cylinder_on_end_on_plane(manifolds):
 
 
 @pytest.mark.parametrize("narrowphase", NARROWPHASES)
-@pytest.mark.parametrize("name", list(MPR) + list(LINES))
+@pytest.mark.parametrize("name", list(MPR) + list(LINES) + ["cylinder end tilted"])
 def test_clipped_manifold_covers_mujoco(request, narrowphase, name):
   """The 3 mm rule: every point of MuJoCo C's deeper than 0.5 mm has a plugin point of the same
-  pair within 3 mm (for these exact cases, within 0.02 mm); at most 5 points."""
+  pair within 3 mm (for these exact cases, within 0.05 mm); at most 5 points. On the flat round
+  end MuJoCo C's square among the 16-gon's four equal ones is float rounding's: there its points
+  are corners of the 16-gon next to the plugin's (within one side)."""
   got, want = _by_narrowphase(request, narrowphase)[name]
   deep = want.pos[want.dist <= -5e-4]
   assert len(deep) > 0, f"{name}: MuJoCo C finds no deep point; the case is mis-built"
   assert 1 <= len(got.dist) <= 5, f"{name}: {len(got.dist)} contacts"
   far = _covered(got.pos, deep)
-  assert far.max() < 2e-5, f"{name}: MuJoCo C's points {np.round(deep[far >= 2e-5], 5)} uncovered ({far.max():.2e} m)"
+  tol = EDGE_16 * 1.001 if name == ROUND_END else 5e-5
+  assert far.max() < tol, f"{name}: MuJoCo C's points {np.round(deep[far >= tol], 5)} uncovered ({far.max():.2e} m)"
 
 
 @pytest.mark.parametrize("narrowphase", NARROWPHASES)

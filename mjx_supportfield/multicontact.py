@@ -445,8 +445,10 @@ TILTS = wp.constant(1)  # no face pair (curved, edge on edge) or too many corner
 QUAD_TIE = 1.0e-6  # relative area below which two quadrilaterals tie (float32 rounding)
 FIFTH_TIE = 1.0e-3  # and two fifth corners (the middle of an arc of a round end has two)
 # the first contact joins the clipped ones when they are all shallower than it by this fraction
-# of its depth (a reference face 5 degrees off the normal measures depths 0.4 % apart)
-MISSED_DEPTH = 0.1
+# of its depth: a round end's deepest point can lie between two corners of its 16-gon, and an
+# edge can cross the reference face's rim beside the incident face (depths measured along a
+# reference normal off n are deeper, never shallower)
+MISSED_DEPTH = 1.0e-4
 
 
 @wp.struct
@@ -830,8 +832,7 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
     for k in range(out.n):
       deepest = wp.min(deepest, out.dist[k])
     if deepest > floor + MISSED_DEPTH * first.depth:
-      # the clipped corners miss the first contact (an edge crossing the reference face's rim
-      # beside the incident face): it takes the last place
+      # the clipped corners miss the first contact's depth: it takes the last place
       k = wp.min(out.n, max_contacts - 1)
       pos = first.pos - 0.5 * band * n
       for c in range(3):

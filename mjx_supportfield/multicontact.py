@@ -443,12 +443,12 @@ _DISK_SIN = wp.constant(wp.types.vector(length=16, dtype=float)(*[math.sin(i * m
 CLIPPED = wp.constant(0)
 TILTS = wp.constant(1)  # no face pair (curved, edge on edge) or too many corners: the tilts
 QUAD_TIE = 1.0e-6  # relative area below which two quadrilaterals tie (float32 rounding)
+DUPLICATE = 1.0e-4  # clipped corners this close (x the polygon's size) are one
 FIFTH_TIE = 1.0e-3  # and two fifth corners (the middle of an arc of a round end has two)
-# the first contact joins the clipped ones when they are all shallower than it by this fraction
-# of its depth: a round end's deepest point can lie between two corners of its 16-gon, and an
-# edge can cross the reference face's rim beside the incident face (depths measured along a
-# reference normal off n are deeper, never shallower)
-MISSED_DEPTH = 1.0e-4
+FIFTH_MARGIN = 0.1  # a fifth contact only where one arc of the quadrilateral gains this much more
+# the first contact takes a clipped corner's place when they are all shallower than it by this
+# fraction of its depth
+MISSED_DEPTH = 0.1
 
 
 @wp.struct
@@ -562,12 +562,12 @@ def _face_vertex(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
   return wp.where(k == 0, f.p0, f.p1)
 
 
-@wp.func
+@wp.func(inline=True)
 def _row(p: mat_poly, i: int) -> wp.vec3:
   return wp.vec3(p[i, 0], p[i, 1], p[i, 2])
 
 
-@wp.func
+@wp.func(inline=True)
 def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
   """collision_gjk._polygon_quad on a local buffer: the corners (indices from base) of a
   quadrilateral of locally largest area in the convex polygon of n > 4 corners at p[base:]. A
@@ -610,27 +610,46 @@ def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
   return res
 
 
-@wp.func
-def _widest_fifth(p: mat_poly, base: int, n: int, quad: wp.vec4i) -> int:
+@wp.func(inline=True)
+def _widest_fifth(p: mat_poly, base: int, n: int, quad: wp.vec4i, tangent: wp.vec3) -> int:
   """The corner (index from base) that adds most area to the quadrilateral ``quad`` of the
-  convex polygon of n corners at p[base:] (it lies between two of the quad's corners, and adds
-  the triangle it makes with them), or -1 when none adds any."""
+  convex polygon of n corners at p[base:] (it lies on an arc between two of the quad's corners,
+  and adds the triangle it makes with them), or -1 when no arc's best corner adds clearly more
+  (FIFTH_MARGIN) than every other arc's: on a symmetric patch (a round end, a cube turned on a
+  cube) the fifth corner would jump between arcs as the bodies settle. Within an arc, of
+  corners that add as much, the one farthest along ``tangent``."""
   best = int(-1)
   gain = float(0.0)
+  key = float(0.0)
+  runner = float(0.0)  # the best gain of the other arcs
   for j in range(4):
     lo = quad[j]
     hi = quad[(j + 1) % 4]
     span = (hi - lo + n) % n
+    arc_best = int(-1)
+    arc_gain = float(0.0)
+    arc_key = float(0.0)
     for k in range(1, span):
       i = (lo + k) % n
       g = wp.length(wp.cross(_row(p, base + i) - _row(p, base + lo), _row(p, base + hi) - _row(p, base + lo)))
-      if g > gain * (1.0 + FIFTH_TIE):
-        best = i
-        gain = g
+      along = wp.dot(_row(p, base + i), tangent)
+      if g > arc_gain * (1.0 + FIFTH_TIE) or (arc_best >= 0 and g >= arc_gain * (1.0 - FIFTH_TIE) and along > arc_key):
+        arc_best = i
+        arc_gain = wp.max(g, arc_gain)
+        arc_key = along
+    if arc_gain > gain:
+      runner = gain
+      best = arc_best
+      gain = arc_gain
+      key = arc_key
+    else:
+      runner = wp.max(runner, arc_gain)
+  if gain <= runner * (1.0 + FIFTH_MARGIN):
+    best = -1
   return best
 
 
-@wp.func
+@wp.func(inline=True)
 def _deepest_first(p: mat_poly, base: int, n: int, normal: wp.vec3, flat: bool, max_contacts: int
                    ) -> tuple[vec_chosen, int]:
   """The deepest of the n corners at p[base:] (the lowest along the reference face's normal),
@@ -670,9 +689,9 @@ def _deepest_first(p: mat_poly, base: int, n: int, normal: wp.vec3, flat: bool, 
   return chosen, count
 
 
-@wp.func
-def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.vec3, flat: bool, max_contacts: int
-                    ) -> tuple[vec_chosen, int]:
+@wp.func(inline=True)
+def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.vec3, tangent: wp.vec3, flat: bool,
+                    max_contacts: int) -> tuple[vec_chosen, int]:
   """Which of the n clipped corners at p[base:] become contacts: all up to max_contacts; a
   clipped segment's two farthest; on a face parallel to the reference one (``flat``, as MuJoCo
   takes a face on a face) MuJoCo's quadrilateral of largest area plus, as a fifth contact, the
@@ -705,7 +724,7 @@ def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.ve
     count = int(4)
     fifth = int(-1)
     if max_contacts > 4:
-      fifth = _widest_fifth(p, base, n, quad)
+      fifth = _widest_fifth(p, base, n, quad, tangent)
     if fifth >= 0:
       chosen[4] = fifth
       count = int(5)
@@ -762,16 +781,24 @@ def _clipped(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshS
     src = dst
     npoly = nclip
     a = b
-  # the corners near enough to the reference plane, in order
+  # the corners near enough to the reference plane, in order, without repeats: clipping leaves
+  # pairs of corners float32 rounding apart, which stalled _polygon_quad's climb (no area gained)
+  size = float(0.0)
+  for i in range(npoly):
+    size = wp.max(size, wp.length(_row(poly, src + i)))
   kept = int(0)
   for i in range(npoly):
     x = _row(poly, src + i)
-    if wp.dot(x, m) <= band:
+    repeat = kept > 0 and wp.length(x - _row(poly, src + kept - 1)) <= DUPLICATE * size
+    if wp.dot(x, m) <= band and not repeat:
       for c in range(3):
         poly[src + kept, c] = x[c]
       kept += 1
+  if kept > 1 and wp.length(_row(poly, src + kept - 1) - _row(poly, src)) <= DUPLICATE * size:
+    kept -= 1
   flat = inc.kind != FACE_SEGMENT and wp.dot(inc.normal, m) <= -FACE_TOL
-  chosen, count = _chosen_corners(poly, src, kept, inc.kind == FACE_SEGMENT, m, flat, max_contacts)
+  tangent = _face_vertex(ref_shape, ms, ref, 1) - origin  # fixed on the reference face: breaks ties
+  chosen, count = _chosen_corners(poly, src, kept, inc.kind == FACE_SEGMENT, m, tangent, flat, max_contacts)
   for k in range(count):
     x = _row(poly, src + chosen[k])
     h = wp.dot(x, m)
@@ -784,7 +811,8 @@ def _clipped(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshS
 
 
 @wp.func
-def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, max_contacts: int) -> Manifold:
+def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, max_contacts: int
+                  ) -> Manifold:
   """The contacts of A and B by face clipping, where the first contact's normal n (from A to B)
   lies along a flat face of one of them (within MuJoCo's multi-CCD tolerance FACE_TOL): that
   face is the reference, the other shape's feature facing it the incident one. Where both
@@ -793,7 +821,8 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   of a curved surface, or the polygons have more than MAXPOLY corners together.
 
   A is grown by its inflate (the margin band, as the narrow phase poses it); the faces are the
-  true ones and the band widens the depth at which a corner still counts.
+  true ones and the band widens the depth at which a corner still counts. ``scale``: the pair's
+  size (posed_pair), for tolerances.
   """
   out = Manifold()
   out.status = TILTS
@@ -828,15 +857,22 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   if out.status == CLIPPED and out.n == 0:
     out.status = TILTS  # nothing within the band: not the face the first contact is on
   if out.status == CLIPPED:
-    deepest = float(1.0e30)
-    for k in range(out.n):
-      deepest = wp.min(deepest, out.dist[k])
-    if deepest > floor + MISSED_DEPTH * first.depth:
-      # the clipped corners miss the first contact's depth: it takes the last place
+    deepest = int(0)
+    for k in range(1, out.n):
+      if out.dist[k] < out.dist[deepest]:
+        deepest = k
+    if out.dist[deepest] > floor + MISSED_DEPTH * first.depth:
+      # the corners miss the first contact (an edge crossing the reference face's rim beside
+      # the incident face): it takes the last place
       k = wp.min(out.n, max_contacts - 1)
       pos = first.pos - 0.5 * band * n
       for c in range(3):
         out.pos[k, c] = pos[c]
       out.dist[k] = floor
       out.n = k + 1
+    else:
+      # the deepest corner carries the first contact's depth, exact where the corners' is not: a
+      # round end's deepest point lies between two corners of its 16-gon, and a face a few
+      # degrees off the normal (MuJoCo's face on a face takes A's) measures along its own normal
+      out.dist[deepest] = floor
   return out

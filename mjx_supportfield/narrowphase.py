@@ -524,9 +524,9 @@ def convex_kernel(use_gjk: bool):
   ):
     """Contacts of convex pairs by MPR (or GJK/EPA) on the shapes' support functions: the
     deepest point; a pair that may touch in more points (not spheres and ellipsoids, where one
-    point is the whole contact) is queued for manifold_kernel instead, which adds up to
-    max_contacts - 1 more. With warm_start, MPR starts from the
-    pair's normal of the previous call and falls back to a cold start when that misses."""
+    point is the whole contact) is queued for manifold_kernel instead, which writes up to
+    max_contacts. With warm_start, MPR starts from the pair's normal of the previous call and
+    falls back to a cold start when that misses."""
     tid = wp.tid()
     now = ws_stamp[0]
     queue = wp.static(QUEUE_GJK if use_gjk else QUEUE_MPR)
@@ -767,7 +767,7 @@ def manifold_kernel(
     band = wp.max(margin + gap, 0.0)
     a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                      geoms, worldid, patch_result[i], patch_pos[i])
-    found = face_manifold(a, b, ms, support_mode, res, max_contacts)
+    found = face_manifold(a, b, ms, support_mode, res, scale, max_contacts)
     if found.status == TILTS:
       tilt_pair[wp.atomic_add(tilt_pair_count, 0, 1)] = i
       continue

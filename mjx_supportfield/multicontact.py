@@ -563,11 +563,6 @@ def _face_vertex(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
 
 
 @wp.func(inline=True)
-def _row(p: mat_poly, i: int) -> wp.vec3:
-  return wp.vec3(p[i, 0], p[i, 1], p[i, 2])
-
-
-@wp.func(inline=True)
 def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
   """collision_gjk._polygon_quad on a local buffer: the corners (indices from base) of a
   quadrilateral of locally largest area in the convex polygon of n > 4 corners at p[base:]. A
@@ -577,25 +572,35 @@ def _polygon_quad(p: mat_poly, base: int, n: int) -> wp.vec4i:
   c = int(2)
   d = int(3)
   res = wp.vec4i(0, b, c, d)
-  m = _area4(_row(p, base), _row(p, base + b), _row(p, base + c), _row(p, base + d))
+  # corners are read in place: a helper taking the buffer copied all of it at each call
+  m = _area4(wp.vec3(p[base, 0], p[base, 1], p[base, 2]), wp.vec3(p[base + 1, 0], p[base + 1, 1], p[base + 1, 2]),
+             wp.vec3(p[base + 2, 0], p[base + 2, 1], p[base + 2, 2]),
+             wp.vec3(p[base + 3, 0], p[base + 3, 1], p[base + 3, 2]))
   for a in range(n):
-    pa = _row(p, base + a)
+    pa = wp.vec3(p[base + a, 0], p[base + a, 1], p[base + a, 2])
     while True:
-      m_next = _area4(pa, _row(p, base + b), _row(p, base + c), _row(p, base + (d + 1) % n))
+      pb = wp.vec3(p[base + b, 0], p[base + b, 1], p[base + b, 2])
+      pc = wp.vec3(p[base + c, 0], p[base + c, 1], p[base + c, 2])
+      e = base + (d + 1) % n
+      m_next = _area4(pa, pb, pc, wp.vec3(p[e, 0], p[e, 1], p[e, 2]))
       if m_next <= m * (1.0 + QUAD_TIE):
         break
       m = m_next
       d = (d + 1) % n
       res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _area4(pa, _row(p, base + b), _row(p, base + (c + 1) % n), _row(p, base + d))
+        e = base + (c + 1) % n
+        m_next = _area4(pa, wp.vec3(p[base + b, 0], p[base + b, 1], p[base + b, 2]), wp.vec3(p[e, 0], p[e, 1], p[e, 2]),
+                        wp.vec3(p[base + d, 0], p[base + d, 1], p[base + d, 2]))
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
         c = (c + 1) % n
         res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _area4(pa, _row(p, base + (b + 1) % n), _row(p, base + c), _row(p, base + d))
+        e = base + (b + 1) % n
+        m_next = _area4(pa, wp.vec3(p[e, 0], p[e, 1], p[e, 2]), wp.vec3(p[base + c, 0], p[base + c, 1], p[base + c, 2]),
+                        wp.vec3(p[base + d, 0], p[base + d, 1], p[base + d, 2]))
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
@@ -631,8 +636,11 @@ def _widest_fifth(p: mat_poly, base: int, n: int, quad: wp.vec4i, tangent: wp.ve
     arc_key = float(0.0)
     for k in range(1, span):
       i = (lo + k) % n
-      g = wp.length(wp.cross(_row(p, base + i) - _row(p, base + lo), _row(p, base + hi) - _row(p, base + lo)))
-      along = wp.dot(_row(p, base + i), tangent)
+      x = wp.vec3(p[base + i, 0], p[base + i, 1], p[base + i, 2])
+      x0 = wp.vec3(p[base + lo, 0], p[base + lo, 1], p[base + lo, 2])
+      x1 = wp.vec3(p[base + hi, 0], p[base + hi, 1], p[base + hi, 2])
+      g = wp.length(wp.cross(x - x0, x1 - x0))
+      along = wp.dot(x, tangent)
       if g > arc_gain * (1.0 + FIFTH_TIE) or (arc_best >= 0 and g >= arc_gain * (1.0 - FIFTH_TIE) and along > arc_key):
         arc_best = i
         arc_gain = wp.max(g, arc_gain)
@@ -659,14 +667,16 @@ def _deepest_first(p: mat_poly, base: int, n: int, normal: wp.vec3, flat: bool, 
   chosen = vec_chosen()
   deepest = int(0)
   for i in range(1, n):
-    if wp.dot(_row(p, base + i), normal) < wp.dot(_row(p, base + deepest), normal):
+    low = wp.vec3(p[base + deepest, 0], p[base + deepest, 1], p[base + deepest, 2])
+    if wp.dot(wp.vec3(p[base + i, 0], p[base + i, 1], p[base + i, 2]), normal) < wp.dot(low, normal):
       deepest = i
   chosen[0] = deepest
   count = int(1)
   if not flat:
     prev = (deepest + n - 1) % n
     after = (deepest + 1) % n
-    if wp.dot(_row(p, base + prev), normal) < wp.dot(_row(p, base + after), normal):
+    before = wp.vec3(p[base + prev, 0], p[base + prev, 1], p[base + prev, 2])
+    if wp.dot(before, normal) < wp.dot(wp.vec3(p[base + after, 0], p[base + after, 1], p[base + after, 2]), normal):
       after = prev
       prev = (deepest + 1) % n
     chosen[1] = after
@@ -680,7 +690,9 @@ def _deepest_first(p: mat_poly, base: int, n: int, normal: wp.vec3, flat: bool, 
     for i in range(n):
       nearest = float(1.0e30)
       for j in range(count):
-        nearest = wp.min(nearest, wp.length_sq(_row(p, base + i) - _row(p, base + chosen[j])))
+        taken = base + chosen[j]
+        x = wp.vec3(p[base + i, 0], p[base + i, 1], p[base + i, 2])
+        nearest = wp.min(nearest, wp.length_sq(x - wp.vec3(p[taken, 0], p[taken, 1], p[taken, 2])))
       if nearest > best_dist:
         best = i
         best_dist = nearest
@@ -706,7 +718,8 @@ def _chosen_corners(p: mat_poly, base: int, n: int, segment: bool, normal: wp.ve
     far = float(0.0)
     for i in range(n):
       for j in range(i + 1, n):
-        d2 = wp.length_sq(_row(p, base + j) - _row(p, base + i))
+        x = wp.vec3(p[base + j, 0], p[base + j, 1], p[base + j, 2])
+        d2 = wp.length_sq(x - wp.vec3(p[base + i, 0], p[base + i, 1], p[base + i, 2]))
         if d2 > far:
           far = d2
           ends = wp.vec2i(i, j)
@@ -763,8 +776,8 @@ def _clipped(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshS
     dst = MAXPOLY - src
     nclip = int(0)
     for i in range(npoly):
-      p = _row(poly, src + i)
-      q = _row(poly, src + (i + 1) % npoly)
+      p = wp.vec3(poly[src + i, 0], poly[src + i, 1], poly[src + i, 2])
+      q = wp.vec3(poly[src + (i + 1) % npoly, 0], poly[src + (i + 1) % npoly, 1], poly[src + (i + 1) % npoly, 2])
       inside1 = _halfspace(a, pn, p)
       inside2 = _halfspace(a, pn, q)
       if inside1 and not inside2 or inside2 and not inside1:
@@ -785,22 +798,25 @@ def _clipped(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshS
   # pairs of corners float32 rounding apart, which stalled _polygon_quad's climb (no area gained)
   size = float(0.0)
   for i in range(npoly):
-    size = wp.max(size, wp.length(_row(poly, src + i)))
+    size = wp.max(size, wp.length(wp.vec3(poly[src + i, 0], poly[src + i, 1], poly[src + i, 2])))
   kept = int(0)
   for i in range(npoly):
-    x = _row(poly, src + i)
-    repeat = kept > 0 and wp.length(x - _row(poly, src + kept - 1)) <= DUPLICATE * size
+    x = wp.vec3(poly[src + i, 0], poly[src + i, 1], poly[src + i, 2])
+    last = src + wp.max(kept - 1, 0)
+    repeat = kept > 0 and wp.length(x - wp.vec3(poly[last, 0], poly[last, 1], poly[last, 2])) <= DUPLICATE * size
     if wp.dot(x, m) <= band and not repeat:
       for c in range(3):
         poly[src + kept, c] = x[c]
       kept += 1
-  if kept > 1 and wp.length(_row(poly, src + kept - 1) - _row(poly, src)) <= DUPLICATE * size:
+  last = src + wp.max(kept - 1, 0)
+  closing = wp.vec3(poly[last, 0], poly[last, 1], poly[last, 2]) - wp.vec3(poly[src, 0], poly[src, 1], poly[src, 2])
+  if kept > 1 and wp.length(closing) <= DUPLICATE * size:
     kept -= 1
   flat = inc.kind != FACE_SEGMENT and wp.dot(inc.normal, m) <= -FACE_TOL
   tangent = _face_vertex(ref_shape, ms, ref, 1) - origin  # fixed on the reference face: breaks ties
   chosen, count = _chosen_corners(poly, src, kept, inc.kind == FACE_SEGMENT, m, tangent, flat, max_contacts)
   for k in range(count):
-    x = _row(poly, src + chosen[k])
+    x = wp.vec3(poly[src + chosen[k], 0], poly[src + chosen[k], 1], poly[src + chosen[k], 2])
     h = wp.dot(x, m)
     pos = origin + x - 0.5 * h * m
     for c in range(3):

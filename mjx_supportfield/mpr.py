@@ -361,7 +361,7 @@ def behind_origin(
 DEEP_RATIO = 0.1  # MPR depths beyond this x the pair's scale are checked along the shapes' axes
 FACE_RATIO = 0.03  # MPR depths beyond this x the smaller shape's size are checked along the faces at hand
 FACE_JUMPS = 2  # face checks (each may rerun and refine MPR) per pair at most
-FACE_GAIN = 1.0e-3  # a face check reruns MPR for an overlap at least this fraction below the depth
+FACE_GAIN = 1.0e-4  # a face check reruns MPR for an overlap at least this fraction below the depth
 FACE_COS = 1.0 - 1.0e-4  # a hull polygon whose normal is this close to a direction faces it
 
 

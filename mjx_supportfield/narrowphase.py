@@ -583,7 +583,8 @@ def convex_kernel(use_gjk: bool):
           q0 = interior_point(a, b, scale)
           if attempt == 0 and last[3] > 0.0:
             q0 = behind_origin(a, b, ms, support_mode, wp.vec3(last[0], last[1], last[2]), last[3], scale, BEHIND)
-          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine, BEHIND)
+          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine, BEHIND,
+                                 wp.min(geom_rbound[rb, g1], geom_rbound[rb, g2]))
       if res.hit == 0:
         continue
       extra = Patch()

@@ -6,10 +6,7 @@ interpolated on both surfaces.
 """
 
 import warp as wp
-from mujoco_warp._src.types import GeomType
 
-from mjx_supportfield.support import hull_point
-from mjx_supportfield.support import mesh_support_index
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -249,28 +246,19 @@ def mpr_refined_from(
   iterations: int,
   refine: int,
   least: float,
-  size: float,
 ) -> MprResult:
   """MPR from interior point p0, then up to ``refine`` reruns along the last normal; the
-  shallowest answer wins. The reruns start ``behind_origin(..., least)``. size: a length of the
-  smaller shape (its bounding radius) for the face checks below; 0 turns them off.
+  shallowest answer wins. The reruns start ``behind_origin(..., least)``.
 
   MPR answers where the ray from its interior point through the origin leaves A - B: the
   penetration along that ray, not the smallest one. Restarting from a point behind the origin
   on the normal (``behind_origin``) sends the ray along the normal; on curved surfaces this
   walks to the point whose surface normal is the ray, the minimum.
 
-  It stays on the face it found, though: a deep pair's A - B has several faces that the origin
-  projects into, and the ray and the reruns settle on one of them, not always the nearest. An
-  answer deeper than ``FACE_RATIO`` x ``size`` is checked along the face normals of both shapes
-  at their support points and the cross products of their edges there (``shallowest_face``),
-  and rerun, then refined, along the one with the smallest overlap when that is shallower: a
-  dodecahedron in a tetrahedron came out 2.95 mm deep along one of its faces, where a face of the
-  tetrahedron gives 2.11 mm and the refinement from there 1.89 mm, the penetration depth. An
-  answer deeper than ``DEEP_RATIO`` x ``scale`` has its first face check take every hull face,
-  and is also checked along both shapes' local axes and rerun along any shallower one (two 1 mm
-  plates crossing at a small angle, offset sideways, came out 0.7 m deep along their length
-  instead of MuJoCo C's 2.5 mm across their thickness).
+  It stays on the face it found, though: an answer deeper than ``DEEP_RATIO`` x ``scale`` is
+  also checked along both shapes' local axes and rerun along any shallower one (two 1 mm plates
+  crossing at a small angle, offset sideways, came out 0.7 m deep along their length instead of
+  MuJoCo C's 2.5 mm across their thickness).
   """
   best = mpr(a, b, ms, mode, p0, scale, tol, iterations)
   if best.hit == 0:
@@ -278,32 +266,15 @@ def mpr_refined_from(
   # the ray already running along the normal is MPR's fixed point: nothing to refine
   refining = bool(wp.dot(best.normal, wp.normalize(-p0.v)) <= 1.0 - 1.0e-6)
   deep = best.depth > DEEP_RATIO * scale
-  faces = wp.where(best.depth > FACE_RATIO * size and size > 0.0, FACE_JUMPS, 0)  # face checks left
   k = int(0)  # next local axis to check
   nrerun = int(0)  # reruns along the normal so far
-  # one MPR call site for the reruns, the face checks and the axis checks keeps the kernels'
-  # stack small
-  for _ in range(refine + 12 + FACE_JUMPS * (refine + 1)):
+  # one MPR call site for the reruns and the axis checks keeps the kernels' stack small
+  for _ in range(refine + 12):
     u = wp.vec3(best.normal)
     start = float(best.depth)
     if refining and (nrerun >= refine or best.depth <= 1.0e-6 * scale):
       refining = False
-    jump = bool(False)
-    if not refining and faces > 0:
-      faces -= 1
-      face = shallowest_face(a, b, ms, mode, best.normal)
-      if deep and faces == FACE_JUMPS - 1:
-        # far deeper than contacts get: all the hulls' faces, not only those at hand
-        face = _scan_planes(a, a, b, ms, mode, 1.0, face)
-        face = _scan_planes(b, a, b, ms, mode, -1.0, face)
-      # a face that ties with the answer (its own face, up to rounding) is not worth an MPR
-      jump = face[3] > 0.0 and face[3] < (1.0 - FACE_GAIN) * best.depth - tol * scale
-      if jump:
-        u = wp.vec3(face[0], face[1], face[2])
-        start = face[3]
-      else:
-        faces = 0
-    if not refining and not jump:
+    if not refining:
       if not deep:
         break
       found = bool(False)
@@ -326,12 +297,6 @@ def mpr_refined_from(
       best = r
     elif r.hit != 0 and r.depth < best.depth - tol * scale:
       best = r
-      if jump:
-        # MPR left along the face normal; refine from where it landed, then check its faces
-        refining = wp.dot(r.normal, u) <= 1.0 - 1.0e-6
-        nrerun = 0
-    elif jump:
-      faces = 0  # nothing shallower along that face: checking again would rerun the same MPR
   return best
 
 
@@ -359,138 +324,6 @@ def behind_origin(
 
 
 DEEP_RATIO = 0.1  # MPR depths beyond this x the pair's scale are checked along the shapes' axes
-FACE_RATIO = 0.03  # MPR depths beyond this x the smaller shape's size are checked along the faces at hand
-FACE_JUMPS = 2  # face checks (each may rerun and refine MPR) per pair at most
-FACE_GAIN = 1.0e-4  # a face check reruns MPR for an overlap at least this fraction below the depth
-FACE_COS = 1.0 - 1.0e-4  # a hull polygon whose normal is this close to a direction faces it
-
-
-@wp.func
-def _shallower(a: Shape, b: Shape, ms: MeshSupport, mode: int, u: wp.vec3, best: wp.vec4) -> wp.vec4:
-  """best (a direction from A to B and the overlap of A and B along it), or u with its overlap
-  when that is smaller."""
-  h = wp.dot(_support(a, b, ms, u, mode).v, u)
-  if h < best[3]:
-    return wp.vec4(u[0], u[1], u[2], h)
-  return best
-
-
-@wp.func
-def _support_vertex(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> int:
-  """Local hull index of a mesh shape's support vertex for world direction d; -1 for other types."""
-  if s.gtype == GeomType.MESH:
-    return mesh_support_index(ms, s.mesh, wp.transpose(s.rot) @ d, mode)
-  return -1
-
-
-@wp.func
-def _faces_at_support(
-  s: Shape, vertex: int, a: Shape, b: Shape, ms: MeshSupport, mode: int, d: wp.vec3, sign: float, best: wp.vec4
-) -> wp.vec4:
-  """best improved by the outward normals (times sign) of the faces of s (A or B) that hold its
-  support point for direction d (a mesh's: its support vertex): a mesh's hull polygons around
-  that vertex, a box's three faces at its corner, a cylinder's cap and side. Curved shapes have
-  none: there the refinement along the normal already finds the nearest point."""
-  local = wp.transpose(s.rot) @ d
-  if s.gtype == GeomType.BOX:
-    for c in range(3):
-      axis = wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
-      best = _shallower(a, b, ms, mode, sign * wp.where(local[c] >= 0.0, 1.0, -1.0) * axis, best)
-  elif s.gtype == GeomType.CYLINDER:
-    axis = wp.vec3(s.rot[0, 2], s.rot[1, 2], s.rot[2, 2])
-    best = _shallower(a, b, ms, mode, sign * wp.where(local[2] >= 0.0, 1.0, -1.0) * axis, best)
-    rxy = wp.sqrt(local[0] * local[0] + local[1] * local[1])
-    if rxy > 1.0e-6 * wp.length(local):
-      best = _shallower(a, b, ms, mode, sign * (s.rot @ wp.vec3(local[0] / rxy, local[1] / rxy, 0.0)), best)
-  elif s.gtype == GeomType.MESH:
-    # a face of the hull along d: the faces around all its corners (those across its edges
-    # included), else the faces around the support vertex
-    face = _face_along(ms, s.mesh, vertex, local)
-    ncorner = int(1)
-    if face >= 0:
-      ncorner = ms.poly_vert_num[face]
-    for c in range(ncorner):
-      corner = vertex
-      if face >= 0:
-        corner = ms.poly_vert[ms.poly_vert_adr[face] + c]
-      g = ms.hull_adr[s.mesh] + corner
-      for k in range(ms.vert_poly_num[g]):
-        poly = ms.poly_adr[s.mesh] + ms.vert_poly[ms.vert_poly_adr[g] + k]
-        best = _shallower(a, b, ms, mode, sign * (s.rot @ ms.poly_normal[poly]), best)
-  return best
-
-
-@wp.func
-def _face_along(ms: MeshSupport, mesh: int, vertex: int, d: wp.vec3) -> int:
-  """The hull polygon (global index) around hull vertex ``vertex`` that faces direction d (mesh
-  frame) when one does, else -1."""
-  g = ms.hull_adr[mesh] + vertex
-  dn = wp.normalize(d)
-  for k in range(ms.vert_poly_num[g]):
-    poly = ms.poly_adr[mesh] + ms.vert_poly[ms.vert_poly_adr[g] + k]
-    if wp.dot(ms.poly_normal[poly], dn) > FACE_COS and ms.poly_vert_num[poly] >= 3:
-      return poly
-  return -1
-
-
-@wp.func
-def _edge_count(s: Shape, ms: MeshSupport, vertex: int) -> int:
-  """Edges of s at its support point: a box's 3, a mesh's hull edges at its support vertex."""
-  if s.gtype == GeomType.BOX:
-    return 3
-  if s.gtype == GeomType.MESH:
-    return ms.nbr_num[ms.hull_adr[s.mesh] + vertex]
-  return 0
-
-
-@wp.func
-def _edge(s: Shape, ms: MeshSupport, vertex: int, k: int) -> wp.vec3:
-  """The k-th edge (world direction, not unit) of s at its support point (see _edge_count)."""
-  if s.gtype == GeomType.BOX:
-    return wp.vec3(s.rot[0, k], s.rot[1, k], s.rot[2, k])
-  g = ms.hull_adr[s.mesh] + vertex
-  other = ms.nbr[ms.nbr_adr[g] + k]
-  return s.rot @ (hull_point(ms, s.mesh, other) - hull_point(ms, s.mesh, vertex))
-
-
-@wp.func
-def shallowest_face(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec4:
-  """Of the face normals of A at its support point along ``normal``, of B at its support point
-  along -normal (negated: every direction points from A to B) and the cross products of the
-  edges there, the direction along which A and B overlap least, and that overlap (xyz, w).
-
-  A polytope pair's penetration depth is its overlap along a face normal of either shape or along
-  a cross product of their edges; MPR's answer lies on a face of A - B, and the faces of A - B
-  that the shapes' support features make there are its neighbours, one of which is shallower
-  when MPR did not settle on the nearest face.
-  """
-  va = _support_vertex(a, ms, normal, mode)
-  vb = _support_vertex(b, ms, -normal, mode)
-  best = wp.vec4(normal[0], normal[1], normal[2], 1.0e30)
-  best = _faces_at_support(a, va, a, b, ms, mode, normal, 1.0, best)
-  best = _faces_at_support(b, vb, a, b, ms, mode, -normal, -1.0, best)
-  nb = _edge_count(b, ms, vb)
-  for i in range(_edge_count(a, ms, va)):
-    ea = _edge(a, ms, va, i)
-    for j in range(nb):
-      eb = _edge(b, ms, vb, j)
-      c = wp.cross(ea, eb)
-      if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-        c = wp.normalize(c)
-        best = _shallower(a, b, ms, mode, wp.where(wp.dot(c, normal) < 0.0, -c, c), best)
-  return best
-
-
-@wp.func
-def _scan_planes(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, sign: float, best: wp.vec4) -> wp.vec4:
-  """best improved by every hull face normal (times sign) of mesh shape s (A or B)."""
-  if s.gtype != GeomType.MESH:
-    return best
-  adr = ms.plane_adr[s.mesh]
-  for f in range(ms.plane_num[s.mesh]):
-    plane = ms.plane[adr + f]
-    best = _shallower(a, b, ms, mode, sign * (s.rot @ wp.vec3(plane[0], plane[1], plane[2])), best)
-  return best
 
 
 @wp.func
@@ -508,6 +341,5 @@ def _axis(a: Shape, b: Shape, k: int) -> wp.vec3:
 def mpr_refined(
   a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int, refine: int, least: float
 ) -> MprResult:
-  """Cold MPR: from the centre difference, refined along the normal (see ``mpr_refined_from``;
-  no face checks)."""
-  return mpr_refined_from(a, b, ms, mode, interior_point(a, b, scale), scale, tol, iterations, refine, least, 0.0)
+  """Cold MPR: from the centre difference, refined along the normal (see ``mpr_refined_from``)."""
+  return mpr_refined_from(a, b, ms, mode, interior_point(a, b, scale), scale, tol, iterations, refine, least)

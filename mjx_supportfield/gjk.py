@@ -651,6 +651,26 @@ def _epa(a: Shape, b: Shape, ms: MeshSupport, mode: int, start: Simplex, scale: 
   # witnesses: the weights of the origin's projection onto the face
   p = best[3] * n
   lam = _triangle(verts[bi] - p, verts[bj] - p, verts[bk] - p)
+  foot = lam[0] * verts[bi] + lam[1] * verts[bj] + lam[2] * verts[bk]
+  if wp.length(foot - p) > eps:
+    # the projection lies off the nearest face: faces coplanar with it tie (A - B is flat there,
+    # e.g. a box's face against a mesh vertex) and the tie broke towards a face beside the
+    # projection, whose weights put the witnesses up to the flat's size away from the contact.
+    # The face that holds the projection (nearest to it) gives the witnesses instead.
+    off = wp.length(foot - p)
+    for f in range(nslots):
+      if state[f] == 1:
+        i = faces[3 * f]
+        j = faces[3 * f + 1]
+        k = faces[3 * f + 2]
+        w3 = _triangle(verts[i] - p, verts[j] - p, verts[k] - p)
+        near = w3[0] * verts[i] + w3[1] * verts[j] + w3[2] * verts[k]
+        if wp.length(near - p) < off:
+          off = wp.length(near - p)
+          lam = w3
+          bi = i
+          bj = j
+          bk = k
   res.ok = 1
   res.depth = best[3]
   res.normal = n

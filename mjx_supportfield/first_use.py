@@ -266,23 +266,24 @@ def collide(collider, m, d, awake_prev=None) -> None:
 def announce_compiles(label: str):
   """Within the block, notes every Warp module that compiles (as ``label`` when no plugin stage
   is under way); the command line wraps each command in one."""
-  with _watch.lock:
-    _watch.holders.append(label)
-    _watch.start()
-  try:
+  with _held(label, end_current=False):
     yield
-  finally:
-    with _watch.lock:
-      _watch.end_stage()
-      _watch.holders.remove(label)
-      _watch.stop()
 
 
 @contextlib.contextmanager
 def stage(label: str):
   """Within the block, compiles are noted under ``label`` (``install`` uses it)."""
+  with _held(label, end_current=True):
+    yield
+
+
+@contextlib.contextmanager
+def _held(label: str, end_current: bool):
+  """Keeps the watch on, noting compiles under ``label``, for the block; ``end_current`` first
+  closes the stage under way, so its summary is written before this one's notes."""
   with _watch.lock:
-    _watch.end_stage()
+    if end_current:
+      _watch.end_stage()
     _watch.holders.append(label)
     _watch.start()
   try:

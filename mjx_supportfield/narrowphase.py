@@ -52,9 +52,7 @@ QUEUE_CANDIDATE = wp.constant(3)  # MPR pairs not yet tested for being apart (si
 NQUEUE = 4
 # register cap of the MPR, GJK and multi-contact kernels: uncapped they sit at 255 registers,
 # which leaves 8 warps an SM to hide their memory latency; at 128 (16 warps) they spill a few
-# hundred bytes to the stack and each ran 10-35 % faster on an H200 (pile_32_128 and aloha_pot
-# at 8192 worlds, benchmarks/results/2026-11-24-h200-closedform-profile-steps.txt; 96 and 168
-# were slower on the pile, -walk-profile-steps.txt)
+# hundred bytes to the stack and still run faster (measured caps: docs/performance.md, "Register cap")
 HEAVY_REGISTERS = 128
 
 

@@ -95,7 +95,7 @@ def main():
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
   device = wp.get_device()
-  report = {"gpu": device.name if device.is_cuda else "cpu", "scene": os.path.basename(args.scene),
+  report = {"device": device.name if device.is_cuda else "cpu", "scene": os.path.basename(args.scene),
             "nworld": args.nworld, "steps": args.steps,
             "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__}}
   for impl in ("stock", "plugin"):

@@ -377,6 +377,9 @@ def bench_newton(path: str, nworlds: list[int], launches: int, settle_steps: int
     poses_how = "MuJoCo's body poses (exact: every shape where MuJoCo has its geom)"
   nbody = len(world.body_of)
   mj_body = np.where(world.body_of < 0, 0, world.body_of)
+  # contacts a world: 4x the room bench gives MuJoCo Warp (Newton's own estimate sizes for every
+  # pair touching, gigabytes at 8192 worlds); an overflow is named in the notes
+  contact_room = 4 * (nconmax or int(1.5 * mjd.ncon) + 16)
   results = []
   for nworld in nworlds:
     model = replicate(world, nworld)
@@ -396,7 +399,8 @@ def bench_newton(path: str, nworlds: list[int], launches: int, settle_steps: int
     ms, frozen, contacts, notes = {}, {}, {}, list(world.notes)
     for mode in broad_phases:
       kwargs = {"shape_pairs_filtered": wp.array(explicit, dtype=wp.vec2i)} if mode == "explicit" else {}
-      pipeline = newton.CollisionPipeline(model, broad_phase=mode, verify_buffers=False, **kwargs)
+      pipeline = newton.CollisionPipeline(model, broad_phase=mode, verify_buffers=False,
+                                          rigid_contact_max=nworld * contact_room, **kwargs)
       out = pipeline.contacts()
       place(settled)
       pipeline.collide(state, out)  # compiles outside the timing

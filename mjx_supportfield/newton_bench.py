@@ -103,6 +103,12 @@ def _colliding_geoms(mjm) -> np.ndarray:
   return colliding
 
 
+def _colliding_shapes(builder, collide_flag: int) -> list[int]:
+  """Newton shapes that collide with shapes: the flag set and a collision group (group 0 is how
+  the import marks MuJoCo's contype = conaffinity = 0)."""
+  return [s for s, f in enumerate(builder.shape_flags) if f & collide_flag and builder.shape_collision_group[s] != 0]
+
+
 def _map_shapes(builder, mjm, body_of, collide_flag) -> np.ndarray:
   """MuJoCo geom of each colliding Newton shape: by name within the same body, then the unnamed
   ones in order within the body."""
@@ -113,7 +119,7 @@ def _map_shapes(builder, mjm, body_of, collide_flag) -> np.ndarray:
     mb = 0 if nb < 0 else int(body_of[nb])
     if mb < 0:
       continue
-    shapes = [s for s in np.nonzero(shape_body == nb)[0] if builder.shape_flags[s] & collide_flag]
+    shapes = [s for s in _colliding_shapes(builder, collide_flag) if shape_body[s] == nb]
     left = list(np.nonzero((mjm.geom_bodyid == mb) & colliding)[0])
     for s in shapes:
       label = builder.shape_label[s]
@@ -145,7 +151,7 @@ def _mujoco_pairs(mjm, geom_of) -> tuple[np.ndarray, int]:
 def _newton_pairs(builder, collide_flag) -> np.ndarray:
   """The shape pairs Newton's nxn and sap broad phases would test in one world (before boxes):
   collision groups, same body, static-static and the filter pairs, as Newton filters them."""
-  shapes = np.array([s for s, f in enumerate(builder.shape_flags) if f & collide_flag], dtype=np.int64)
+  shapes = np.array(_colliding_shapes(builder, collide_flag), dtype=np.int64)
   i, j = np.triu_indices(len(shapes), k=1)
   a, b = shapes[i], shapes[j]
   group = np.asarray(builder.shape_collision_group)
@@ -174,7 +180,7 @@ def build_world(path: str, mjm: Optional[mujoco.MjModel] = None) -> NewtonWorld:
   if (body_of < 0).any():
     notes.append(f"{int((body_of < 0).sum())} of {len(body_of)} Newton bodies have no MuJoCo body of their name")
   geom_of = _map_shapes(builder, mjm, body_of, collide_flag)
-  colliding = [s for s, f in enumerate(builder.shape_flags) if f & collide_flag]
+  colliding = _colliding_shapes(builder, collide_flag)
   unmatched = [s for s in colliding if geom_of[s] < 0]
   if unmatched:
     notes.append(f"{len(unmatched)} colliding Newton shapes match no MuJoCo geom, e.g. {builder.shape_label[unmatched[0]]}")

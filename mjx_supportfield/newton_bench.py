@@ -212,21 +212,30 @@ def _rotate(q_xyzw: np.ndarray, v: np.ndarray) -> np.ndarray:
   return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
-def pose_mismatches(world: NewtonWorld, mjm: mujoco.MjModel, mjd: mujoco.MjData) -> list[str]:
-  """Shapes that are not where MuJoCo has their geom once Newton's bodies take MuJoCo's body poses:
-  primitives by centre, boxes and convex meshes by world bounding box (the hull's box is the
-  mesh's), planes by normal and offset. Empty when the pose mapping is exact."""
+def mujoco_body_poses(world: NewtonWorld, mjd: mujoco.MjData) -> np.ndarray:
+  """Each Newton body's pose (x, y, z, qx, qy, qz, qw) from the MuJoCo body of its name."""
+  mb = np.maximum(world.body_of, 0)
+  return np.concatenate([mjd.xpos[mb], _quat_xyzw(mjd.xquat[mb])], axis=1)
+
+
+def pose_mismatches(world: NewtonWorld, mjm: mujoco.MjModel, mjd: mujoco.MjData,
+                    body_poses: Optional[np.ndarray] = None) -> list[str]:
+  """Shapes that are not where MuJoCo has their geom when Newton's bodies take ``body_poses``
+  (default: MuJoCo's body poses, ``mujoco_body_poses``): primitives by centre, boxes and convex
+  meshes by world bounding box (the hull's box is the mesh's), planes by normal and offset.
+  Empty when the poses are exact."""
   newton = import_newton()
   gt = newton.GeoType
   b = world.builder
+  if body_poses is None:
+    body_poses = mujoco_body_poses(world, mjd)
   bad = []
   for s, g in enumerate(world.geom_of):
     if g < 0:
       continue
     nb = b.shape_body[s]
     if nb >= 0:
-      mb = world.body_of[nb]
-      body_p, body_q = mjd.xpos[mb], _quat_xyzw(mjd.xquat[mb])
+      body_p, body_q = body_poses[nb, :3].astype(np.float64), body_poses[nb, 3:].astype(np.float64)
     else:
       body_p, body_q = np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
     xf = b.shape_transform[s]
@@ -272,11 +281,104 @@ def _place_bodies(xpos: wp.array2d(dtype=wp.vec3), xquat: wp.array2d(dtype=wp.qu
   body_q[i] = wp.transform(xpos[world, b], wp.quat(q[1], q[2], q[3], q[0]))
 
 
-def _check_placed(body_q: np.ndarray, mjd: mujoco.MjData, mj_body: np.ndarray) -> None:
-  """Raises unless world 0's Newton bodies hold MuJoCo's settled body poses (x, y, z, w order)."""
-  want = np.concatenate([mjd.xpos[mj_body], _quat_xyzw(mjd.xquat[mj_body])], axis=1)
-  if not np.allclose(body_q, want, atol=1e-5):
-    raise RuntimeError("Newton's bodies do not hold MuJoCo Warp's poses after placing them (quaternion order?)")
+@wp.kernel
+def _gather_joint_q(qpos: wp.array2d(dtype=float), coord_world: wp.array(dtype=int), coord_src: wp.array(dtype=int),
+                    joint_q: wp.array(dtype=float)):
+  i = wp.tid()
+  joint_q[i] = qpos[coord_world[i], coord_src[i]]
+
+
+def joint_coordinate_map(builder, mjm: mujoco.MjModel) -> Optional[np.ndarray]:
+  """For each joint coordinate of one Newton world, its MuJoCo qpos address (quaternions turned
+  from (w, x, y, z) to (x, y, z, w)); None where the joints do not pair up. Newton's joints other
+  than fixed ones pair in order with MuJoCo's (both walk the body tree depth first)."""
+  newton = import_newton()
+  jt, mt = newton.JointType, mujoco.mjtJoint
+  kinds = {jt.FREE: (mt.mjJNT_FREE, [0, 1, 2, 4, 5, 6, 3]), jt.BALL: (mt.mjJNT_BALL, [1, 2, 3, 0]),
+           jt.REVOLUTE: (mt.mjJNT_HINGE, [0]), jt.PRISMATIC: (mt.mjJNT_SLIDE, [0])}
+  src = np.full(builder.joint_coord_count, -1, dtype=np.int32)
+  mj_joint = 0
+  for j, kind in enumerate(builder.joint_type):
+    if kind == jt.FIXED:
+      continue
+    if kind not in kinds or mj_joint >= mjm.njnt or mjm.jnt_type[mj_joint] != kinds[kind][0]:
+      return None
+    start = builder.joint_q_start[j]
+    order = kinds[kind][1]
+    src[start:start + len(order)] = mjm.jnt_qposadr[mj_joint] + np.array(order)
+    mj_joint += 1
+  if mj_joint != mjm.njnt or (src < 0).any():
+    return None
+  return src
+
+
+def newton_fk_poses(world: NewtonWorld, mjm: mujoco.MjModel, mjd: mujoco.MjData) -> Optional[np.ndarray]:
+  """Newton's own forward kinematics of MuJoCo's qpos (one world): each body's pose, or None when
+  the joints do not pair up."""
+  newton = import_newton()
+  src = joint_coordinate_map(world.builder, mjm)
+  if src is None:
+    return None
+  model = world.builder.finalize(device="cpu")
+  state = model.state()
+  joint_q = wp.array(mjd.qpos[src].astype(np.float32), dtype=float, device="cpu")
+  newton.eval_fk(model, joint_q, model.joint_qd, state)
+  return state.body_q.numpy()
+
+
+class _Poser:
+  """Puts poses from MuJoCo Warp (``evolving_poses`` entries) on the bodies of every Newton world:
+  the body poses of the MuJoCo bodies of their names, or (``fk``) Newton's forward kinematics of
+  MuJoCo's qpos."""
+
+  def __init__(self, world: NewtonWorld, mjm: mujoco.MjModel, model, state, nworld: int, fk: bool):
+    self.model, self.state, self.fk = model, state, fk
+    self.nbody = len(world.body_of)
+    self.body_world = wp.array(np.repeat(np.arange(nworld), self.nbody).astype(np.int32), dtype=int)
+    self.mj_body = wp.array(np.tile(np.maximum(world.body_of, 0), nworld).astype(np.int32), dtype=int)
+    if fk:
+      src = joint_coordinate_map(world.builder, mjm)
+      ncoord = len(src)
+      if model.joint_coord_count != nworld * ncoord:
+        raise RuntimeError("Newton's replicated joint coordinates are not one block a world")
+      self.coord_world = wp.array(np.repeat(np.arange(nworld), ncoord).astype(np.int32), dtype=int)
+      self.coord_src = wp.array(np.tile(src, nworld).astype(np.int32), dtype=int)
+      self.joint_q = wp.zeros(nworld * ncoord, dtype=float)
+
+  def __call__(self, pose):
+    """Launches the kernels that pose every world (capturable)."""
+    if not self.nbody:
+      return
+    if self.fk:
+      wp.launch(_gather_joint_q, dim=self.joint_q.shape[0], inputs=[pose[2], self.coord_world, self.coord_src, self.joint_q])
+      import_newton().eval_fk(self.model, self.joint_q, self.model.joint_qd, self.state)
+    else:
+      wp.launch(_place_bodies, dim=self.body_world.shape[0],
+                inputs=[pose[0], pose[1], self.body_world, self.mj_body, self.state.body_q])
+
+  def check(self, want: np.ndarray) -> None:
+    """Raises unless world 0's bodies hold ``want`` (x, y, z, qx, qy, qz, qw per body)."""
+    got = self.state.body_q.numpy()[:self.nbody]
+    if not np.allclose(got, want, atol=1e-4):
+      raise RuntimeError("Newton's bodies do not hold the poses meant for them (quaternion order?)")
+
+
+def _choose_poses(world: NewtonWorld, mjm: mujoco.MjModel, mjd: mujoco.MjData) -> tuple[bool, np.ndarray, str]:
+  """Whether to pose Newton by its own FK of MuJoCo's qpos instead of MuJoCo's body poses (only
+  when the body poses put some shape elsewhere and the FK puts fewer there), world 0's expected
+  body poses, and a line saying which and how exact."""
+  body_poses = mujoco_body_poses(world, mjd)
+  bad = pose_mismatches(world, mjm, mjd, body_poses)
+  if not bad:
+    return False, body_poses, "MuJoCo's body poses (exact: every shape where MuJoCo has its geom)"
+  fk_poses = newton_fk_poses(world, mjm, mjd)
+  fk_bad = None if fk_poses is None else pose_mismatches(world, mjm, mjd, fk_poses)
+  why = f"MuJoCo's body poses put {len(bad)} shapes elsewhere (e.g. {bad[0]})"
+  if fk_bad is not None and len(fk_bad) < len(bad):
+    exact = "exact" if not fk_bad else f"INEXACT for {len(fk_bad)} shapes (e.g. {fk_bad[0]})"
+    return True, fk_poses, f"Newton's FK of MuJoCo's qpos ({exact}): {why}"
+  fk_why = "its joints do not pair up with MuJoCo's" if fk_poses is None else f"it puts {len(fk_bad)} shapes elsewhere"
+  return False, body_poses, f"MuJoCo's body poses, INEXACT: {why}; not Newton's FK: {fk_why}"
 
 
 def _time_calls(prepare: Callable[[int], None], call: Callable[[], None], ncalls: int, launches: int) -> tuple[float, str]:
@@ -325,17 +427,17 @@ def _time_calls(prepare: Callable[[int], None], call: Callable[[], None], ncalls
 
 
 def evolving_poses(mjm: mujoco.MjModel, mjd: mujoco.MjData, nworld: int, nsteps: int,
-                   nconmax: Optional[int] = None) -> list[tuple[wp.array, wp.array]]:
-  """(xpos, xquat) of every world in MuJoCo Warp's Data of ``mjd``, then after each of ``nsteps``
+                   nconmax: Optional[int] = None) -> list[tuple[wp.array, wp.array, wp.array]]:
+  """(xpos, xquat, qpos) of every world in MuJoCo Warp's Data of ``mjd``, then after each of ``nsteps``
   stock MuJoCo Warp steps from it: the settled state and the poses that bench's
   collision-in-steps timing collides."""
   ncon = nconmax or int(1.5 * mjd.ncon) + 16
   m = mjw.put_model(mjm)
   d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=ncon, njmax=6 * ncon + mjd.nefc)
-  poses = [(wp.clone(d.xpos), wp.clone(d.xquat))]
+  poses = [(wp.clone(d.xpos), wp.clone(d.xquat), wp.clone(d.qpos))]
   for _ in range(nsteps):
     mjw.step(m, d)
-    poses.append((wp.clone(d.xpos), wp.clone(d.xquat)))
+    poses.append((wp.clone(d.xpos), wp.clone(d.xquat), wp.clone(d.qpos)))
   wp.synchronize()
   return poses
 
@@ -376,31 +478,18 @@ def bench_newton(path: str, nworlds: list[int], launches: int, settle_steps: int
   mjm = mujoco.MjModel.from_xml_path(path)
   mjd = mjd or settled_state(mjm, settle_steps)
   world = build_world(path, mjm)
-  bad = pose_mismatches(world, mjm, mjd)
-  if bad:
-    poses_how = f"MuJoCo's body poses, INEXACT for {len(bad)} shapes (e.g. {bad[0]})"
-  else:
-    poses_how = "MuJoCo's body poses (exact: every shape where MuJoCo has its geom)"
-  nbody = len(world.body_of)
-  mj_body = np.where(world.body_of < 0, 0, world.body_of)
+  fk, want, poses_how = _choose_poses(world, mjm, mjd)
   # contacts a world: 4x the room bench gives MuJoCo Warp (Newton's own estimate sizes for every
   # pair touching, gigabytes at 8192 worlds); an overflow is named in the notes
   contact_room = 4 * (nconmax or int(1.5 * mjd.ncon) + 16)
   results = []
   for nworld in nworlds:
     model = replicate(world, nworld)
-    body_world = wp.array(np.repeat(np.arange(nworld), nbody).astype(np.int32), dtype=int)
-    mj_body_all = wp.array(np.tile(mj_body, nworld).astype(np.int32), dtype=int)
     state = model.state()
+    place = _Poser(world, mjm, model, state, nworld, fk)
     settled, *steps = evolving_poses(mjm, mjd, nworld, STEPS_PER_GRAPH, nconmax)
-
-    def place(pose):
-      if nbody:
-        wp.launch(_place_bodies, dim=nbody * nworld, inputs=[pose[0], pose[1], body_world, mj_body_all, state.body_q])
-
     place(settled)
-    _check_placed(state.body_q.numpy()[:nbody], mjd, mj_body)
-
+    place.check(want)
     explicit = _explicit_pairs(world, nworld)
     ms, frozen, contacts, notes = {}, {}, {}, list(world.notes)
     for mode in broad_phases:
@@ -438,11 +527,10 @@ def settled_contact_pairs(path: str, settle_steps: int, broad_phase: str = "nxn"
   world = build_world(path, mjm)
   model = replicate(world, nworld)
   state = model.state()
-  nbody = len(world.body_of)
-  settled = evolving_poses(mjm, mjd, nworld, 0)[0]
-  body_world = wp.array(np.repeat(np.arange(nworld), nbody).astype(np.int32), dtype=int)
-  mj_body = wp.array(np.tile(np.maximum(world.body_of, 0), nworld).astype(np.int32), dtype=int)
-  wp.launch(_place_bodies, dim=nbody * nworld, inputs=[settled[0], settled[1], body_world, mj_body, state.body_q])
+  fk, want, _ = _choose_poses(world, mjm, mjd)
+  place = _Poser(world, mjm, model, state, nworld, fk)
+  place(evolving_poses(mjm, mjd, nworld, 0)[0])
+  place.check(want)
   kwargs = {"shape_pairs_filtered": wp.array(_explicit_pairs(world, nworld), dtype=wp.vec2i)} if broad_phase == "explicit" else {}
   pipeline = newton.CollisionPipeline(model, broad_phase=broad_phase, **kwargs)
   contacts = pipeline.contacts()

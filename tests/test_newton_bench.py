@@ -65,3 +65,12 @@ def mujoco_pairs_allowed(mjm):
   m = mjw.put_model(mjm)
   contact = m.nxn_pairid_filtered.numpy().reshape(-1, 2)[:, 0] > -2
   return [tuple(sorted(map(int, p))) for p in m.nxn_geom_pair_filtered.numpy().reshape(-1, 2)[contact]]
+
+
+def test_newton_fk_of_mujoco_qpos_is_exact(resting):
+  """The fallback when body poses cannot be mapped: Newton's FK of MuJoCo's qpos."""
+  mjm, mjd, world = resting
+  fk = newton_bench.newton_fk_poses(world, mjm, mjd)
+  assert fk is not None
+  assert newton_bench.pose_mismatches(world, mjm, mjd, fk) == []
+  np.testing.assert_allclose(fk[:, :3], newton_bench.mujoco_body_poses(world, mjd)[:, :3], atol=1e-5)

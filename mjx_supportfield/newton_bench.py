@@ -493,7 +493,10 @@ def bench_newton(path: str, nworlds: list[int], launches: int, settle_steps: int
     explicit = _explicit_pairs(world, nworld)
     ms, frozen, contacts, notes = {}, {}, {}, list(world.notes)
     for mode in broad_phases:
-      kwargs = {"shape_pairs_filtered": wp.array(explicit, dtype=wp.vec2i)} if mode == "explicit" else {}
+      if mode == "explicit":
+        kwargs = {"shape_pairs_filtered": wp.array(explicit, dtype=wp.vec2i)}
+      else:  # nxn and sap emit at most MuJoCo's pairs (the rest are filter pairs); Newton's default is n(n-1)/2
+        kwargs = {"shape_pairs_max": max(1, len(explicit))}
       pipeline = newton.CollisionPipeline(model, broad_phase=mode, verify_buffers=False,
                                           rigid_contact_max=nworld * contact_room, **kwargs)
       out = pipeline.contacts()

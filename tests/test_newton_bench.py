@@ -2,6 +2,7 @@
 MuJoCo (poses, pairs) and Newton's contacts on a resting scene; never timings. Skipped without
 the optional ``newton`` extra."""
 
+import json
 import os
 import sys
 
@@ -10,7 +11,9 @@ import numpy as np
 import pytest
 
 from conftest import MODELS
+from conftest import on_gpu
 from mjx_supportfield import newton_bench
+from mjx_supportfield.cli import main
 
 RESTING = os.path.join(MODELS, "resting.xml")
 
@@ -74,3 +77,30 @@ def test_newton_fk_of_mujoco_qpos_is_exact(resting):
   assert fk is not None
   assert newton_bench.pose_mismatches(world, mjm, mjd, fk) == []
   np.testing.assert_allclose(fk[:, :3], newton_bench.mujoco_body_poses(world, mjd)[:, :3], atol=1e-5)
+
+
+def test_bench_newton_without_newton_is_one_error_line(capsys, monkeypatch):
+  monkeypatch.setitem(sys.modules, "newton", None)
+  rc = main(["bench", RESTING, "--newton", "--nworld", "1"])
+  err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+  assert rc == 2 and len(err) == 1 and "mjx-supportfield[newton]" in err[0], err
+
+
+def test_bench_newton_writes_the_newton_column(tmp_path, capsys, resting):
+  """bench --newton: the JSON has a newton entry per scene and world count beside the rows (which
+  carry the frozen-state figure), and the table prints the three columns."""
+  if on_gpu():
+    pytest.skip("a quick CPU run")
+  results = tmp_path / "bench.json"
+  rc = main(["bench", os.path.join(MODELS, "mesh_on_plane.xml"), "--newton", "--nworld", "2", "--settle", "50",
+             "--json", str(results)])
+  out = capsys.readouterr().out
+  assert rc == 0
+  assert "newton ms" in out and "exact" in out
+  data = json.loads(results.read_text())
+  assert data["newton_version"] == "1.8.0"
+  (entry,) = data["newton"]
+  assert entry["nworld"] == 2 and entry["broadphase"] in newton_bench.BROAD_PHASES
+  assert sorted(entry["ms_by_broadphase"]) == sorted(newton_bench.BROAD_PHASES)
+  assert entry["contacts_per_world"] > 0 and entry["notes"] == []
+  assert all(r["frozen_ms"] > 0 for r in data["rows"] if r["stage"] == "collision")

@@ -8,7 +8,8 @@ vertex cap (``approximate_meshes("convex_hull")``, ``mesh_maxhullvert=0``; MuJoC
 hull of every mesh), its contact gap is zero (``rigid_gap = 0``; MuJoCo's default gap is 0 too),
 and its candidate pairs are made MuJoCo's: the pairs Newton would test that MuJoCo filters out
 (same weld, parent/child, contype/conaffinity, ``<exclude>``, no dofs) become Newton filter pairs,
-and the ``explicit`` broad phase gets MuJoCo's pair list itself. Each world's bodies are placed
+Newton filter pairs that drop a pair MuJoCo tests are taken out, and the ``explicit`` broad phase
+gets MuJoCo's pair list itself. Each world's bodies are placed
 where MuJoCo Warp's step put them (``xpos``/``xquat`` of the body of the same name), so Newton
 collides the very poses that stock MuJoCo Warp and the plugin collide.
 """
@@ -190,9 +191,12 @@ def build_world(path: str, mjm: Optional[mujoco.MjModel] = None) -> NewtonWorld:
   pairs, nunmapped = _mujoco_pairs(mjm, geom_of)
   if nunmapped:
     notes.append(f"{nunmapped} MuJoCo pairs have a geom without a Newton shape")
-  newton_pairs = _newton_pairs(builder, collide_flag)
   mj_set = set(map(tuple, pairs.tolist()))
-  nt_set = set(map(tuple, newton_pairs.tolist()))
+  # pairs MuJoCo tests that a Newton filter pair drops: Newton filters parent and child even where
+  # the parent is welded to the world, which MuJoCo does not
+  builder.shape_collision_filter_pairs = [p for p in builder.shape_collision_filter_pairs
+                                          if tuple(sorted(map(int, p))) not in mj_set]
+  nt_set = set(map(tuple, _newton_pairs(builder, collide_flag).tolist()))
   for a, b in sorted(nt_set - mj_set):  # MuJoCo filters them (weld, parent, masks, exclude, no dofs)
     builder.add_shape_collision_filter_pair(int(a), int(b))
   missing = mj_set - nt_set

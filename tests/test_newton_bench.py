@@ -104,3 +104,13 @@ def test_bench_newton_writes_the_newton_column(tmp_path, capsys, resting):
   assert sorted(entry["ms_by_broadphase"]) == sorted(newton_bench.BROAD_PHASES)
   assert entry["contacts_per_world"] > 0 and entry["notes"] == []
   assert all(r["frozen_ms"] > 0 for r in data["rows"] if r["stage"] == "collision")
+
+
+def test_newton_tests_mujocos_pairs_exactly():
+  """nxn and sap test MuJoCo's pairs, no more, no fewer: on arm_sweep the first link is welded to
+  the world, where MuJoCo collides parent and child and Newton's import filters them."""
+  newton = pytest.importorskip("newton", reason="Newton 1.8 is not installed: pip install mjx-supportfield[newton]")
+  world = newton_bench.build_world(os.path.join(MODELS, "real", "arm_sweep.xml"))
+  assert world.notes == []
+  ours = newton_bench._newton_pairs(world.builder, int(newton.ShapeFlags.COLLIDE_SHAPES))
+  assert set(map(tuple, ours.tolist())) == set(map(tuple, world.pairs.tolist()))

@@ -470,12 +470,42 @@ def _explicit_pairs(world: NewtonWorld, nworld: int) -> np.ndarray:
   return (world.pairs[None] + (np.arange(nworld) * nshape)[:, None, None]).reshape(-1, 2).astype(np.int32)
 
 
+def _time_broad_phase(model, state, mode: str, explicit: np.ndarray, contact_max: int, place: "_Poser", settled,
+                      steps: list, launches: int) -> tuple[float, float, float, str]:
+  """One broad phase: contacts per world at the settled state, ms per collide repeated there
+  (frozen) and inside the evolving poses, and a note (overflow, not graph-captured) or "". The
+  pipeline is freed on return, before the next one is allocated."""
+  newton = import_newton()
+  nworld = model.world_count
+  if mode == "explicit":
+    kwargs = {"shape_pairs_filtered": wp.array(explicit, dtype=wp.vec2i)}
+  else:  # nxn and sap emit at most MuJoCo's pairs (the rest are filter pairs); Newton's default is n(n-1)/2
+    kwargs = {"shape_pairs_max": max(1, len(explicit))}
+  pipeline = newton.CollisionPipeline(model, broad_phase=mode, verify_buffers=False, rigid_contact_max=contact_max,
+                                      **kwargs)
+  out = pipeline.contacts()
+  place(settled)
+  pipeline.collide(state, out)  # compiles outside the timing
+  wp.synchronize()
+  count = int(out.rigid_contact_count.numpy()[0])
+  notes = [f"the contact buffer ({contact_max}) overflowed"] if count >= contact_max else []
+
+  def collide():
+    pipeline.collide(state, out)
+
+  frozen, _ = _time_calls(lambda k: None, collide, STEPS_PER_GRAPH, launches)
+  ms, how = _time_calls(lambda k: place(steps[k]), collide, STEPS_PER_GRAPH, launches)
+  if how.startswith("events, not"):
+    notes.append(how)
+  return min(count, contact_max) / nworld, frozen, ms, "; ".join(notes)
+
+
 def bench_newton(path: str, nworlds: list[int], launches: int, settle_steps: int, nconmax: Optional[int] = None,
                  broad_phases=BROAD_PHASES, mjd: Optional[mujoco.MjData] = None) -> list[NewtonResult]:
   """Times Newton's CollisionPipeline on ``path`` for each nworld and broad phase: inside the
   poses of evolving stock MuJoCo Warp steps from the settled state, and repeated on the settled
   state (frozen). See the module docstring for the settings."""
-  newton = import_newton()
+  import_newton()  # the error naming the extra before anything else
   from mjx_supportfield.bench import scene_name  # bench imports this module lazily: no cycle at import
   from mjx_supportfield.bench import settled_state
 
@@ -497,26 +527,9 @@ def bench_newton(path: str, nworlds: list[int], launches: int, settle_steps: int
     explicit = _explicit_pairs(world, nworld)
     ms, frozen, contacts, notes = {}, {}, {}, list(world.notes)
     for mode in broad_phases:
-      if mode == "explicit":
-        kwargs = {"shape_pairs_filtered": wp.array(explicit, dtype=wp.vec2i)}
-      else:  # nxn and sap emit at most MuJoCo's pairs (the rest are filter pairs); Newton's default is n(n-1)/2
-        kwargs = {"shape_pairs_max": max(1, len(explicit))}
-      pipeline = newton.CollisionPipeline(model, broad_phase=mode, verify_buffers=False,
-                                          rigid_contact_max=nworld * contact_room, **kwargs)
-      out = pipeline.contacts()
-      place(settled)
-      pipeline.collide(state, out)  # compiles outside the timing
-      wp.synchronize()
-      count = int(out.rigid_contact_count.numpy()[0])
-      if count >= pipeline.rigid_contact_max:
-        notes.append(f"{mode}: the contact buffer ({pipeline.rigid_contact_max}) overflowed")
-      contacts[mode] = min(count, pipeline.rigid_contact_max) / nworld
-      frozen[mode], _ = _time_calls(lambda k: None, lambda: pipeline.collide(state, out), STEPS_PER_GRAPH, launches)
-      ms[mode], how = _time_calls(lambda k: place(steps[k]), lambda: pipeline.collide(state, out), STEPS_PER_GRAPH,
-                                  launches)
-      if how.startswith("events, not"):
-        notes.append(f"{mode}: {how}")
-      del pipeline, out
+      contacts[mode], frozen[mode], ms[mode], note = _time_broad_phase(model, state, mode, explicit, nworld * contact_room,
+                                                                      place, settled, steps, launches)
+      notes += [f"{mode}: {note}"] if note else []
     best = min(ms, key=ms.get) if ms else None
     results.append(NewtonResult(scene_name(path), nworld, ms.get(best), best, frozen.get(best), ms, frozen,
                                 contacts.get(best), contacts, poses_how, len(world.pairs), notes))

@@ -1,7 +1,7 @@
 """The whole benchmark suite on the GPU: every scene, plugin vs stock MuJoCo Warp in one process.
 
   python benchmarks/run_suite.py [--only SCENE ...] [--launches N] [--out benchmarks/results]
-                                 [--compile-jobs N]
+                                 [--compile-jobs N] [--newton]
 
 Writes <out>/<date>-<gpu>.json (the bench rows of every scene, install times and the
 broad-phase scaling; rewritten after each scene, so a run cut short keeps what it measured)
@@ -11,6 +11,10 @@ Compiling MuJoCo Warp's step and the plugin for a new scene takes minutes on the
 ``--compile-jobs N`` first runs every scene once, N scenes at a time in separate processes
 (``--compile-only``), so the kernels compile in parallel into Warp's cache before the timed
 runs, which then go one scene at a time.
+
+``--newton`` adds Newton 1.8's collision pipeline on the same poses (the ``newton`` extra;
+``mjx_supportfield/newton_bench.py``): the JSON gains ``newton`` entries (best broad phase and its
+ms inside the evolving poses, each broad phase's ms in steps and frozen, contacts per world).
 """
 
 import argparse
@@ -113,12 +117,13 @@ def broadphase_scaling(nworld: int, launches: int, out: str, suffix: str) -> Non
   print("wrote", path)
 
 
-def compile_all(names: list[str], jobs: int) -> dict:
-  """Runs each scene once (both implementations, at most 64 worlds) in ``jobs`` parallel processes, so
-  every kernel is in Warp's cache before timing. Returns each scene's exit status."""
+def compile_all(names: list[str], jobs: int, newton: bool = False) -> dict:
+  """Runs each scene once (both implementations, and Newton's pipeline with ``newton``; at most 64
+  worlds) in ``jobs`` parallel processes, so every kernel is in Warp's cache before timing. Returns
+  each scene's exit status."""
 
   def one(name):
-    cmd = [sys.executable, os.path.abspath(__file__), "--compile-only", "--only", name]
+    cmd = [sys.executable, os.path.abspath(__file__), "--compile-only", "--only", name] + (["--newton"] if newton else [])
     t = time.perf_counter()
     rc = subprocess.run(cmd, stdout=subprocess.DEVNULL).returncode
     print(f"compiled {name}: exit {rc} after {time.perf_counter() - t:.0f} s", flush=True)
@@ -141,7 +146,17 @@ def main(argv=None):
                  help="run each scene once at 64 worlds (fewer where the scene is timed at fewer), time nothing")
   p.add_argument("--broadphase-only", type=int, metavar="NWORLD",
                  help="time only the broad phase of the piles at NWORLD worlds, on the current device (CPU works)")
+  p.add_argument("--newton", action="store_true",
+                 help="also time Newton 1.8's collision pipeline on the same poses (pip install mjx-supportfield[newton])")
   args = p.parse_args(argv)
+  newton_bench = None
+  if args.newton:
+    from mjx_supportfield import newton_bench
+
+    try:
+      newton_bench.import_newton()
+    except ImportError as e:
+      p.error(str(e))
   wp.config.log_level = wp.LOG_WARNING
   names = args.only or list(SCENES)
   if any(not os.path.exists(SCENES[n][0]) for n in names):
@@ -149,17 +164,19 @@ def main(argv=None):
   if args.compile_only:
     for name in names:  # at most the scene's smallest world count (the 1024-mesh pile's dense solver)
       bench.bench_scene(SCENES[name][0], [min(64, *SCENES[name][1])], 1, 200, None, Options())
+      if newton_bench:
+        newton_bench.bench_newton(SCENES[name][0], [min(64, *SCENES[name][1])], 1, 200)
     return
   if args.broadphase_only:
     broadphase_scaling(args.broadphase_only, args.launches, args.out, args.suffix)
     return
   if args.compile_jobs:
-    compile_all(names, args.compile_jobs)
+    compile_all(names, args.compile_jobs, args.newton)
 
   options = Options.from_dict(json.loads(args.options))
   plan = {n: (SCENES[n][0], args.nworld or SCENES[n][1]) for n in names}
   progress = bench.Progress(sum(2 * len(nw) for _, nw in plan.values()))
-  rows, installs, scaling = [], {}, []
+  rows, installs, scaling, newton_results = [], {}, [], []
   os.makedirs(args.out, exist_ok=True)
   gpu = bench.device_name()
   stem = os.path.join(args.out, f"{datetime.date.today()}-{gpu.split()[-1].lower()}{args.suffix}")
@@ -170,15 +187,24 @@ def main(argv=None):
     rows += bench.bench_scene(path, nworlds, launches[name], 200, None, options, progress)
     if name in BROADPHASE_SCENES:
       scaling += broadphase_ms(path, BROADPHASE_NWORLD, args.launches)
-    print(f"\n{bench.format_table([r for r in rows if r.scene == bench.scene_name(path)])}", flush=True)
-    bench.write_json(rows, stem + ".json", extra={"install_s": installs, "broadphase_scaling": scaling,
-                                                   "launches": launches, "options": json.loads(args.options)})
+    scene_rows = [r for r in rows if r.scene == bench.scene_name(path)]
+    print(f"\n{bench.format_table(scene_rows)}", flush=True)
+    extra = {"install_s": installs, "broadphase_scaling": scaling, "launches": launches,
+             "options": json.loads(args.options)}
+    if newton_bench:
+      scene_newton = newton_bench.bench_newton(path, nworlds, launches[name], 200)
+      newton_results += scene_newton
+      print(newton_bench.format_newton(scene_newton, scene_rows), flush=True)
+      extra.update(newton_bench.json_extra(newton_results))
+    bench.write_json(rows, stem + ".json", extra=extra)
 
   try:
     bench.plot([r.__dict__ for r in rows], stem + ".png")
   except ImportError:
     print("matplotlib missing: no plot")
   print(bench.format_table(rows))
+  if newton_bench:
+    print(newton_bench.format_newton(newton_results, rows))
   print("install [s]:", json.dumps(installs))
   print("broad phase:", json.dumps(scaling))
   print("wrote", stem + ".json")

@@ -22,7 +22,8 @@ from mjx_supportfield.options import Options
 class Row:
   """One timing: scene, nworld, impl ("plugin" | "stock"), stage ("collision" | "step").
 
-  A collision row also carries ``step_minus_rest_ms``: the step minus the step without collision.
+  A collision row also carries ``step_minus_rest_ms``: the step minus the step without collision,
+  and ``frozen_ms``: the collision stage repeated on the settled state (no step between calls).
   """
 
   scene: str
@@ -32,6 +33,7 @@ class Row:
   ms: float
   contacts_per_world: float
   step_minus_rest_ms: Optional[float] = None
+  frozen_ms: Optional[float] = None
 
 
 class Progress:
@@ -106,14 +108,41 @@ def _time_collision_in_steps(m, d, launches: int) -> Optional[float]:
         mjw.step(m, d)
   finally:
     collision_driver.collision = inner
-  wp.capture_launch(capture.graph)  # warm
+  return _replay_events(capture.graph, calls, launches)
+
+
+def _replay_events(graph, calls: list, launches: int) -> float:
+  """Milliseconds per timed call: replays ``graph`` (one warm-up, then about ``launches`` calls)
+  and sums the (start, end) event pairs it records."""
+  wp.capture_launch(graph)  # warm
   total = 0.0
-  replays = max(1, launches // _STEPS_PER_GRAPH)
+  replays = max(1, launches // len(calls))
   for _ in range(replays):
-    wp.capture_launch(capture.graph)
+    wp.capture_launch(graph)
     wp.synchronize()  # an event holds its last replay's time only
     total += sum(wp.get_event_elapsed_time(start, end) for start, end in calls)
-  return total / (replays * _STEPS_PER_GRAPH)
+  return total / (replays * len(calls))
+
+
+def _time_collision_frozen(mjm, mjd, m, nworld: int, nconmax: int, njmax: int, launches: int) -> float:
+  """Milliseconds per collision call repeated on the settled state ``mjd`` (fresh Data, nothing
+  steps between calls): CUDA events around each call in a captured graph, as inside steps; on the
+  CPU the wall time. The plugin's warm start holds the answer from the second call on, so this
+  flatters it; it is the figure beside the one inside evolving steps."""
+  d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=nconmax, njmax=njmax)
+  mjw.collision(m, d)  # the plugin's per-Data state, outside the graph
+  wp.synchronize()
+  if not wp.get_device().is_cuda:
+    return _time_graph(lambda: mjw.collision(m, d), launches)
+  calls = []
+  with wp.ScopedCapture() as capture:
+    for _ in range(_STEPS_PER_GRAPH):
+      start, end = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
+      wp.record_event(start)
+      mjw.collision(m, d)
+      wp.record_event(end)
+      calls.append((start, end))
+  return _replay_events(capture.graph, calls, launches)
 
 
 def scene_name(path: str) -> str:
@@ -157,7 +186,9 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
       ms_rest = _time_graph(lambda: mjw.step(m, d), launches)
       m.opt.run_collision_detection = True
       diff = ms_step - ms_rest
-      rows.append(Row(scene, nworld, impl, "collision", diff if ms_collision is None else ms_collision, contacts, diff))
+      ms_frozen = _time_collision_frozen(mjm, mjd, m, nworld, ncon, njmax, launches)
+      rows.append(Row(scene, nworld, impl, "collision", diff if ms_collision is None else ms_collision, contacts, diff,
+                      ms_frozen))
       rows.append(Row(scene, nworld, impl, "step", ms_step, contacts))
       if progress:
         progress.step(f"{scene} nworld={nworld} {impl}")
@@ -167,7 +198,8 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
 def format_table(rows: list[Row]) -> str:
   """ms, million world-steps per second and stock/plugin ratio per scene, nworld and stage."""
   out = [f"{'scene':24s} {'nworld':>6s} {'stage':9s} {'stock ms':>9s} {'plugin ms':>9s} {'speed-up':>8s} "
-         f"{'plugin Mws/s':>12s} {'con/world stock':>15s} {'plugin':>7s} {'step-rest: stock':>16s} {'plugin':>7s}"]
+         f"{'plugin Mws/s':>12s} {'con/world stock':>15s} {'plugin':>7s} {'step-rest: stock':>16s} {'plugin':>7s} "
+         f"{'frozen: stock':>13s} {'plugin':>7s}"]
   keyed = {(r.scene, r.nworld, r.stage, r.impl): r for r in rows}
   for (scene, nworld, stage, impl), r in keyed.items():
     if impl != "plugin" or (scene, nworld, stage, "stock") not in keyed:
@@ -177,6 +209,8 @@ def format_table(rows: list[Row]) -> str:
             f"{nworld / r.ms / 1e3:12.2f} {s.contacts_per_world:15.1f} {r.contacts_per_world:7.1f}")
     if r.step_minus_rest_ms is not None and s.step_minus_rest_ms is not None:
       line += f" {s.step_minus_rest_ms:16.3f} {r.step_minus_rest_ms:7.3f}"
+    if r.frozen_ms is not None and s.frozen_ms is not None:
+      line += f" {s.frozen_ms:13.3f} {r.frozen_ms:7.3f}"
     out.append(line)
   return "\n".join(out)
 

@@ -108,14 +108,25 @@ def _bench(args) -> int:
       print(f"nworld {','.join(map(str, nworlds))}: the default on {where} (GPU: "
             f"{','.join(map(str, bench.GPU_WORLDS))}, CPU: {','.join(map(str, bench.CPU_WORLDS))}); "
             "--nworld picks others", flush=True)
+    newton_bench = None
+    if args.newton:
+      from mjx_supportfield import newton_bench
+      try:
+        newton_bench.import_newton()
+      except ImportError as e:
+        return _error(str(e))
     print(f"device: {bench.device_description()}", flush=True)
-    rows = []
+    rows, newton_results = [], []
     progress = bench.Progress(len(args.model) * len(nworlds) * 2)
     for path in args.model:
       rows += bench.bench_scene(path, nworlds, args.steps, args.settle, args.nconmax, Options(), progress)
+      if newton_bench:
+        newton_results += newton_bench.bench_newton(path, nworlds, args.steps, args.settle, args.nconmax)
       if args.json:  # after each scene, so a run cut short keeps what it measured
-        bench.write_json(rows, args.json)
+        bench.write_json(rows, args.json, extra=newton_bench.json_extra(newton_results) if newton_bench else None)
     print(bench.format_table(rows))
+    if newton_bench:
+      print(newton_bench.format_newton(newton_results, rows))
     if args.json:
       print(f"wrote {args.json}")
     device = bench.device_description()
@@ -211,6 +222,9 @@ def _parser() -> argparse.ArgumentParser:
   b.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
   b.add_argument("--json", default=None, help="write rows as JSON")
   b.add_argument("--plot", default=None, help="write a PNG of time vs nworld (needs matplotlib)")
+  b.add_argument("--newton", action="store_true",
+                 help="also time Newton 1.8's collision pipeline on the same poses, each broad phase "
+                      "(needs the newton extra: pip install mjx-supportfield[newton])")
   b.set_defaults(func=_bench)
 
   pl = sub.add_parser("plot", help="plot a bench JSON file", description="Draws what 'bench --json' wrote.")

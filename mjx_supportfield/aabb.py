@@ -30,7 +30,7 @@ def _plane_box(pos: wp.vec3, normal: wp.vec3, inflate: float) -> tuple[wp.vec3, 
   return lo, hi
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def update_aabbs(
   # Model:
   geom_type: wp.array(dtype=int),

@@ -207,7 +207,7 @@ _MODEL_INPUTS = (
 )
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def sort_endpoints(
   ngeom: int,
   axis: int,
@@ -322,7 +322,7 @@ def sweep_kernel(static_key: tuple, axis: int):
   return sweep
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def clamp_counts(max_pairs: int, world_npair: wp.array(dtype=int), world_count_out: wp.array(dtype=int)):
   """Pairs kept per world (the counter also counts the dropped ones)."""
   worldid = wp.tid()

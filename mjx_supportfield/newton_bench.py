@@ -276,7 +276,7 @@ def pose_mismatches(world: NewtonWorld, mjm: mujoco.MjModel, mjd: mujoco.MjData,
   return bad
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _place_bodies(xpos: wp.array2d(dtype=wp.vec3), xquat: wp.array2d(dtype=wp.quat), body_world: wp.array(dtype=int),
                   mj_body: wp.array(dtype=int), body_q: wp.array(dtype=wp.transform)):
   i = wp.tid()
@@ -285,7 +285,7 @@ def _place_bodies(xpos: wp.array2d(dtype=wp.vec3), xquat: wp.array2d(dtype=wp.qu
   body_q[i] = wp.transform(xpos[world, b], wp.quat(q[1], q[2], q[3], q[0]))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _gather_joint_q(qpos: wp.array2d(dtype=float), coord_world: wp.array(dtype=int), coord_src: wp.array(dtype=int),
                     joint_q: wp.array(dtype=float)):
   i = wp.tid()

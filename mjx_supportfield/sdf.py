@@ -46,7 +46,7 @@ def hull_triangles(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   return np.asarray(g[start : start + 3 * nf], dtype=np.int32).reshape(nf, 3)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _bake(mesh: wp.uint64, lo: wp.vec3, cell: float, res: wp.vec3i, out: wp.array(dtype=float)):
   i, j, k = wp.tid()
   p = lo + cell * wp.vec3(float(i), float(j), float(k))

@@ -191,7 +191,7 @@ def cell_direction(u: float, v: float, res: int) -> wp.vec3:
   return wp.vec3(wp.sin(phi) * wp.cos(theta), wp.sin(phi) * wp.sin(theta), wp.cos(phi))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _build_field(
   ms: MeshSupport, cell_mesh: wp.array(dtype=int), extremes: wp.array2d(dtype=int), field_out: wp.array(dtype=wp.uint16)
 ):
@@ -216,7 +216,7 @@ def _build_field(
     field_out[cell] = wp.uint16(hull_scan(ms, mesh, d))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _check_field(
   ms: MeshSupport,
   check_mesh: wp.array(dtype=int),
@@ -376,7 +376,7 @@ def _unbeaten_neighbour(ms: MeshSupport, mesh: int, cand: _candidates, ncand: in
   return -1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.array(dtype=int),
              extras_out: wp.array2d(dtype=int)):
   """Proves, per quad, which vertices its lookup must weigh to be exact.
@@ -429,14 +429,14 @@ def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.arra
     proof_out[cell] = 2
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _extras_size(proof: wp.array(dtype=int), size_out: wp.array(dtype=int)):
   """Entries a quad's extras list takes: its own vertex and its k extras."""
   cell = wp.tid()
   size_out[cell] = wp.where(proof[cell] > 2, proof[cell] - 1, 0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _write_proofs(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof: wp.array(dtype=int),
                   extras: wp.array2d(dtype=int), offset: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16),
                   extra_out: wp.array(dtype=wp.uint16)):
@@ -460,7 +460,7 @@ def _write_proofs(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof: wp.arr
     field_out[cell] = wp.uint16(pointer | WITH_EXTRAS)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _mesh_extra_adr(field_adr: wp.array(dtype=int), offset: wp.array(dtype=int), total: int,
                     extra_adr_out: wp.array(dtype=int)):
   """Every mesh's lists start at the list offset of its first cell."""

@@ -36,7 +36,7 @@ def test_a_module_not_in_the_cache_is_announced(tmp_path, monkeypatch, caplog):
   monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
   scale = random.random()  # in the code: a module no earlier run has loaded
 
-  @wp.kernel(module="unique")
+  @wp.kernel(module="unique", enable_backward=False)
   def scaled(x: wp.array(dtype=float)):
     x[wp.tid()] = wp.static(scale)
 

@@ -34,6 +34,9 @@ from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
+# the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
+wp.set_module_options({"enable_backward": False})
+
 SCALES = (1e-3, 1.0, 10.0)
 TOL = 1e-6
 ITERATIONS = 50

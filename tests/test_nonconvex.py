@@ -20,6 +20,9 @@ from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import build_mesh_sdf
 from mjx_supportfield.sdf import mesh_sdf_value
 
+# the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
+wp.set_module_options({"enable_backward": False})
+
 BIG, SMALL = 0.05, 0.015  # the torus of models/meshes/torus.obj
 
 

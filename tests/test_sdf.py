@@ -11,6 +11,9 @@ import mjx_supportfield as sf
 from mjx_supportfield import sdf as sdfmod
 from mjx_supportfield.types import MeshSupport
 
+# the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
+wp.set_module_options({"enable_backward": False})
+
 CUBE = " ".join(str(x) for x in (np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])).ravel())
 XML = f"""
 <mujoco>

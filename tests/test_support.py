@@ -13,6 +13,9 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from conftest import load_mjmodel
 
+# the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
+wp.set_module_options({"enable_backward": False})
+
 NRANDOM = 3000
 
 

@@ -14,6 +14,9 @@ from mjx_supportfield import support_field
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 
+# the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
+wp.set_module_options({"enable_backward": False})
+
 RES = 180
 NDIR = 100_000
 

@@ -16,6 +16,9 @@ from conftest import set_qpos
 import mjx_supportfield as sf
 from mjx_supportfield import warmstart
 
+# the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
+wp.set_module_options({"enable_backward": False})
+
 SCENES = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "scenes")
 
 

@@ -16,7 +16,11 @@ ray provably leaves through one of them the tilt's answer follows in closed form
 (tilt_closed_form); only the rest (edge against edge, curved sides) run the tilted MPR.
 """
 
+import math
+
 import warp as wp
+from mujoco_warp._src.collision_gjk import EDGE_TOL
+from mujoco_warp._src.collision_gjk import FACE_TOL
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 
@@ -45,6 +49,8 @@ UNKNOWN = wp.constant(1.0e30)  # depth of a tilt the closed form cannot answer: 
 # corner sitting on a face's edge is on the face up to float32 noise
 ON_FACE_TOL = 1.0e-5
 
+# polygons whose normals' dot products with a direction differ by less are coplanar pieces
+COPLANAR = 1.0e-5
 mat43 = wp.types.matrix(shape=(4, 3), dtype=float)
 
 
@@ -67,14 +73,15 @@ def _tilted(a: Shape, pivot: wp.vec3, rot: wp.mat33) -> Shape:
 
 
 @wp.func
-def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float) -> int:
+def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float, slack: float) -> int:
   """1 + the support vertex's hull neighbours that tie with it (capped at 3): enough to tell a
   vertex from an edge from a face, without count_supports' flood fill."""
   best = mesh_support_index(ms, mesh, d, SUPPORT_REFINED)
   top = wp.dot(hull_point(ms, mesh, best), d)
-  tol = rtol * wp.max(wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh]), 1.0e-12)
+  extent = wp.max(wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh]), 1.0e-12)
   if ms.nbr_num.shape[0] == 0:
-    return count_supports(GeomType.MESH, wp.vec3(0.0), mesh, ms, d, rtol)
+    return count_supports(GeomType.MESH, wp.vec3(0.0), mesh, ms, d, wp.max(rtol, slack / extent))
+  tol = wp.max(rtol * extent, slack)
   g = ms.hull_adr[mesh] + best
   n = int(1)
   for k in range(ms.nbr_num[g]):
@@ -84,32 +91,34 @@ def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float) -> int:
 
 
 @wp.func
-def _ties(s: Shape, ms: MeshSupport, d_world: wp.vec3, rtol: float) -> int:
-  """How many support points a shape has in direction d within rtol of its extent: 1 for a
-  point, 2 for an edge or a line, 3 for a face (or more, counted, for boxes and meshes)."""
+def _ties(s: Shape, ms: MeshSupport, d_world: wp.vec3, rtol: float, slack: float) -> int:
+  """How many support points a shape has in direction d within rtol of its extent, or within
+  slack: 1 for a point, 2 for an edge or a line, 3 for a face (or more, counted, for boxes and
+  meshes)."""
   d = wp.normalize(wp.transpose(s.rot) @ d_world)
   if s.gtype == GeomType.BOX:
-    return count_supports(s.gtype, s.size, s.mesh, ms, d, rtol)
+    return count_supports(s.gtype, s.size, s.mesh, ms, d, wp.max(rtol, slack / wp.max(wp.length(s.size), 1.0e-12)))
   if s.gtype == GeomType.MESH:
-    return _mesh_ties(ms, s.mesh, d, rtol)
+    return _mesh_ties(ms, s.mesh, d, rtol, slack)
   if s.gtype == GeomType.CYLINDER:
-    extent = wp.length(wp.vec2(s.size[0], s.size[1]))
-    if wp.sqrt(wp.max(1.0 - d[2] * d[2], 0.0)) * s.size[0] <= rtol * extent:
+    tol = wp.max(rtol * wp.length(wp.vec2(s.size[0], s.size[1])), slack)
+    if wp.sqrt(wp.max(1.0 - d[2] * d[2], 0.0)) * s.size[0] <= tol:
       return 3  # an end disk
-    if wp.abs(d[2]) * s.size[1] <= rtol * extent:
+    if wp.abs(d[2]) * s.size[1] <= tol:
       return 2  # a line of the side
   if s.gtype == GeomType.CAPSULE:
-    if wp.abs(d[2]) * s.size[1] <= rtol * (s.size[0] + s.size[1]):
+    if wp.abs(d[2]) * s.size[1] <= wp.max(rtol * (s.size[0] + s.size[1]), slack):
       return 2
   return 1
 
 
 @wp.func
-def patch_possible(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, eps: float) -> bool:
-  """Whether tilting by eps can find more points: a tilt brings in a point only if it is within
-  eps x the shape's extent of the deepest along the normal, so both shapes must offer at least
-  an edge there (face-face, face-edge, parallel edges). Vertex contacts skip the tilted MPRs."""
-  return _ties(a, ms, normal, eps) >= 2 and _ties(b, ms, -normal, eps) >= 2
+def patch_possible(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, eps: float, depth: float) -> bool:
+  """Whether the contact can have more points than the first: both shapes must offer at least
+  an edge along the normal (face-face, face-edge, parallel edges), up to what a tilt by eps
+  brings in (eps x the shape's extent) or what sinks as deep as the first contact (``depth``,
+  margin band included). Vertex contacts skip the multi-contact stage."""
+  return _ties(a, ms, normal, eps, depth) >= 2 and _ties(b, ms, -normal, eps, depth) >= 2
 
 
 @wp.func
@@ -178,16 +187,21 @@ def tilt_mpr(
 @wp.func
 def _polygon_toward(ms: MeshSupport, mesh: int, vertex: int, u: wp.vec3) -> int:
   """The hull polygon (global index) around hull vertex ``vertex`` whose normal is nearest to
-  direction u (mesh frame); -1 when the mesh has no polygons."""
+  direction u (mesh frame); -1 when the mesh has no polygons. Of coplanar polygons (MuJoCo
+  leaves some faces split, a dodecahedron's pentagon into a triangle and a quadrilateral) the
+  one with more corners."""
   g = ms.hull_adr[mesh] + vertex
   best = int(-1)
   best_dot = float(-2.0)
+  best_num = int(0)
   for k in range(ms.vert_poly_num[g]):
     p = ms.poly_adr[mesh] + ms.vert_poly[ms.vert_poly_adr[g] + k]
     c = wp.dot(ms.poly_normal[p], u)
-    if c > best_dot and ms.poly_vert_num[p] >= 3:
+    num = ms.poly_vert_num[p]
+    if num >= 3 and (c > best_dot + COPLANAR or (c > best_dot - COPLANAR and num > best_num)):
       best = p
       best_dot = c
+      best_num = num
   return best
 
 
@@ -379,3 +393,551 @@ def perturbed_contacts(
       patch.n += 1
       break
   return patch
+
+
+# --- Face clipping ------------------------------------------------------------------------
+#
+# Where the contact normal lies along a flat face of one shape (within MuJoCo's multi-CCD
+# tolerance), the contact patch is that face (the reference) against the other shape's facing
+# feature (the incident face, or a line of a cylinder's side or a capsule): the incident polygon
+# clipped to the reference face's side planes, its corners within the margin band of the
+# reference plane. The clipped polygon is never built: its corners are streamed (each incident
+# edge clipped on its own, Cyrus-Beck; each reference corner tested inside the incident
+# polygon) into a fixed set of scalar slots. Polygons are read from the model's arrays each time
+# a corner is needed: a thread-local polygon buffer lived in local memory on a GPU, and the
+# clipping ran several times slower than the tilts it replaces.
+
+MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's bound)
+# reference corners x incident corners above which a face pair goes to the tilts: the clipping
+# loops over every pair of them (a box face on a cylinder's end: 4 x 16)
+FACE_PAIR_BUDGET = 64
+DISK_CORNERS = 16  # MuJoCo's polygon for a cylinder's end
+
+# kinds of Face
+FACE_NONE = wp.constant(0)
+FACE_BOX = wp.constant(1)  # index: 2 * axis, + 1 on the negative side
+FACE_MESH = wp.constant(2)  # index: the hull polygon (global)
+FACE_DISK = wp.constant(3)  # index: 0 the cylinder's top end, 1 its bottom
+FACE_SEGMENT = wp.constant(4)  # a line of a cylinder's side or of a capsule: p0, p1
+
+# Manifold.status
+CLIPPED = wp.constant(0)
+TILTS = wp.constant(1)  # no face pair (curved, edge on edge), polygons over budget: the tilts
+# the first contact takes a clipped corner's place when they are all shallower than it by this
+# fraction of its depth
+MISSED_DEPTH = 0.1
+# where more than max_contacts corners compete, the deepest is chosen first only when it is
+# deeper than every extreme corner by this fraction of the first contact's depth: on a face
+# lying flat on a face all corners are as deep, and float32 rounding would pick a different one
+# each step
+DEEPEST_MARGIN = 0.1
+
+
+@wp.struct
+class Face:
+  """A flat feature of a shape: a face (kind, index, corners) with its outward normal (world),
+  or a segment (p0, p1 in the shape's frame)."""
+
+  kind: int
+  index: int
+  nvert: int
+  normal: wp.vec3
+  p0: wp.vec3
+  p1: wp.vec3
+
+
+@wp.struct
+class Manifold:
+  """A clipped pair's contacts (status CLIPPED): midpoints and signed distances (negative:
+  penetration) of the true surfaces, margin band removed."""
+
+  status: int
+  n: int
+  pos0: wp.vec3
+  pos1: wp.vec3
+  pos2: wp.vec3
+  pos3: wp.vec3
+  pos4: wp.vec3
+  dist0: float
+  dist1: float
+  dist2: float
+  dist3: float
+  dist4: float
+
+
+@wp.struct
+class Picks:
+  """The streamed corners (reference face's frame, height over the reference plane): the first
+  distinct ones (up to MAX_MANIFOLD; n = MAX_MANIFOLD + 1 once more came), the deepest, and the
+  extremes along two directions across the reference face, both ways. Scalar fields, no arrays: an
+  array indexed at run time lives in local memory on a GPU."""
+
+  count: int
+  n: int
+  x0: wp.vec3
+  x1: wp.vec3
+  x2: wp.vec3
+  x3: wp.vec3
+  x4: wp.vec3
+  h0: float
+  h1: float
+  h2: float
+  h3: float
+  h4: float
+  deep: wp.vec3
+  deep_h: float
+  e0: wp.vec3  # farthest along +u
+  e1: wp.vec3  # -u
+  e2: wp.vec3  # +v
+  e3: wp.vec3  # -v
+  e0_h: float
+  e1_h: float
+  e2_h: float
+  e3_h: float
+  e0_s: float
+  e1_s: float
+  e2_s: float
+  e3_s: float
+
+
+@wp.func
+def _component(v: wp.vec3, k: int) -> float:
+  """v[k] without a run-time index (which would put v in local memory on a GPU)."""
+  return wp.where(k == 0, v[0], wp.where(k == 1, v[1], v[2]))
+
+
+@wp.func
+def _along_axis(k: int, value: float) -> wp.vec3:
+  """value along axis k (0, 1, 2)."""
+  return wp.vec3(wp.where(k == 0, value, 0.0), wp.where(k == 1, value, 0.0), wp.where(k == 2, value, 0.0))
+
+
+@wp.func
+def _no_face() -> Face:
+  f = Face()
+  f.kind = FACE_NONE
+  f.index = 0
+  f.nvert = 0
+  f.normal = wp.vec3(0.0)
+  f.p0 = wp.vec3(0.0)
+  f.p1 = wp.vec3(0.0)
+  return f
+
+
+@wp.func
+def _flat_face(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
+  """The flat face of s whose outward normal is nearest to world direction u (a box face, a
+  cylinder's end, a mesh's hull polygon around its support vertex); kind FACE_NONE where s has
+  none."""
+  lu = wp.transpose(s.rot) @ u
+  f = _no_face()
+  local = wp.vec3(0.0)
+  if s.gtype == GeomType.BOX:
+    k = wp.where(wp.abs(lu[1]) > wp.abs(lu[0]), 1, 0)
+    k = wp.where(wp.abs(lu[2]) > wp.abs(_component(lu, k)), 2, k)
+    sign = wp.where(_component(lu, k) >= 0.0, 1.0, -1.0)
+    local = _along_axis(k, sign)
+    f.kind = FACE_BOX
+    f.index = 2 * k + wp.where(sign > 0.0, 0, 1)
+    f.nvert = 4
+  elif s.gtype == GeomType.CYLINDER:
+    sign = wp.where(lu[2] >= 0.0, 1.0, -1.0)
+    local = wp.vec3(0.0, 0.0, sign)
+    f.kind = FACE_DISK
+    f.index = wp.where(sign > 0.0, 0, 1)
+    f.nvert = DISK_CORNERS
+  elif s.gtype == GeomType.MESH:
+    poly = _polygon_toward(ms, s.mesh, mesh_support_index(ms, s.mesh, lu, mode), lu)
+    if poly >= 0:
+      local = ms.poly_normal[poly]
+      f.kind = FACE_MESH
+      f.index = poly
+      f.nvert = ms.poly_vert_num[poly]
+  f.normal = s.rot @ local
+  return f
+
+
+@wp.func
+def _incident(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
+  """The feature of s facing world direction u (toward the reference face): its face nearest u,
+  or for a cylinder lying on its side or a capsule the line of its surface along u; kind
+  FACE_NONE where s meets the reference face in a point of a curved surface."""
+  if s.gtype == GeomType.BOX or s.gtype == GeomType.MESH:
+    return _flat_face(s, ms, u, mode)
+  f = _no_face()
+  lu = wp.transpose(s.rot) @ u
+  if s.gtype == GeomType.CYLINDER and wp.abs(lu[2]) >= FACE_TOL:
+    return _flat_face(s, ms, u, mode)
+  if (s.gtype == GeomType.CYLINDER or s.gtype == GeomType.CAPSULE) and wp.abs(lu[2]) <= EDGE_TOL:
+    axis = wp.vec3(0.0, 0.0, s.size[1])
+    side = s.size[0] * lu
+    if s.gtype == GeomType.CYLINDER:
+      side = s.size[0] * wp.normalize(wp.vec3(lu[0], lu[1], 0.0))
+    f.kind = FACE_SEGMENT
+    f.nvert = 2
+    f.normal = u
+    f.p0 = side - axis
+    f.p1 = side + axis
+  return f
+
+
+@wp.func
+def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
+  """Corner k of face f of s, in the shape's frame, going round the face."""
+  if f.kind == FACE_BOX:
+    axis = f.index // 2
+    i = (axis + 1) % 3
+    j = (axis + 2) % 3
+    sign = wp.where(f.index % 2 == 0, 1.0, -1.0)
+    u = wp.where(k == 0 or k == 3, 1.0, -1.0)
+    v = wp.where(k < 2, 1.0, -1.0)
+    return (_along_axis(axis, sign * _component(s.size, axis)) + _along_axis(i, u * _component(s.size, i))
+            + _along_axis(j, v * _component(s.size, j)))
+  if f.kind == FACE_MESH:
+    return hull_point(ms, s.mesh, ms.poly_vert[ms.poly_vert_adr[f.index] + k])
+  if f.kind == FACE_DISK:
+    # MuJoCo's 16-gon (collision_gjk._cylinder_face): its corners are where MuJoCo C's contacts lie
+    sign = wp.where(f.index != 0, -1.0, 1.0)
+    angle = float(k) * wp.static(2.0 * math.pi / DISK_CORNERS)
+    return wp.vec3(s.size[0] * wp.cos(angle), -sign * s.size[0] * wp.sin(angle), sign * s.size[1])
+  return wp.where(k == 0, f.p0, f.p1)
+
+
+@wp.func
+def _new_picks() -> Picks:
+  p = Picks()
+  p.count = 0
+  p.n = 0
+  p.x0 = wp.vec3(0.0)
+  p.x1 = wp.vec3(0.0)
+  p.x2 = wp.vec3(0.0)
+  p.x3 = wp.vec3(0.0)
+  p.x4 = wp.vec3(0.0)
+  p.h0 = 0.0
+  p.h1 = 0.0
+  p.h2 = 0.0
+  p.h3 = 0.0
+  p.h4 = 0.0
+  p.deep = wp.vec3(0.0)
+  p.deep_h = 1.0e30
+  p.e0 = wp.vec3(0.0)
+  p.e1 = wp.vec3(0.0)
+  p.e2 = wp.vec3(0.0)
+  p.e3 = wp.vec3(0.0)
+  p.e0_h = 0.0
+  p.e1_h = 0.0
+  p.e2_h = 0.0
+  p.e3_h = 0.0
+  p.e0_s = -1.0e30
+  p.e1_s = -1.0e30
+  p.e2_s = -1.0e30
+  p.e3_s = -1.0e30
+  return p
+
+
+@wp.func
+def _near(a: wp.vec3, b: wp.vec3, spacing: float) -> bool:
+  return wp.length_sq(a - b) < spacing * spacing
+
+
+@wp.func
+def _pick(p: Picks, x: wp.vec3, h: float, u: wp.vec3, v: wp.vec3, band: float, spacing: float) -> Picks:
+  """Picks with corner x (height h over the reference plane) streamed in: ignored above the
+  margin band; else kept among the first distinct corners, and in the deepest and extreme slots
+  where it beats them (ties keep the earlier corner)."""
+  if h > band:
+    return p
+  out = p
+  out.count = p.count + 1
+  seen = ((p.n > 0 and _near(x, p.x0, spacing)) or (p.n > 1 and _near(x, p.x1, spacing))
+          or (p.n > 2 and _near(x, p.x2, spacing)) or (p.n > 3 and _near(x, p.x3, spacing))
+          or (p.n > 4 and _near(x, p.x4, spacing)))
+  if not seen:
+    if p.n == 0:
+      out.x0 = x
+      out.h0 = h
+    elif p.n == 1:
+      out.x1 = x
+      out.h1 = h
+    elif p.n == 2:
+      out.x2 = x
+      out.h2 = h
+    elif p.n == 3:
+      out.x3 = x
+      out.h3 = h
+    elif p.n == 4:
+      out.x4 = x
+      out.h4 = h
+    out.n = wp.min(p.n + 1, MAX_MANIFOLD + 1)
+  if h < p.deep_h:
+    out.deep = x
+    out.deep_h = h
+  su = wp.dot(x, u)
+  sv = wp.dot(x, v)
+  if su > p.e0_s:
+    out.e0 = x
+    out.e0_h = h
+    out.e0_s = su
+  if -su > p.e1_s:
+    out.e1 = x
+    out.e1_h = h
+    out.e1_s = -su
+  if sv > p.e2_s:
+    out.e2 = x
+    out.e2_h = h
+    out.e2_s = sv
+  if -sv > p.e3_s:
+    out.e3 = x
+    out.e3_h = h
+    out.e3_s = -sv
+  return out
+
+
+@wp.func
+def _put(mf: Manifold, x: wp.vec3, h: float, spacing: float, limit: int) -> Manifold:
+  """mf with corner x (height h) appended, unless it is full (limit) or x repeats a corner."""
+  if mf.n >= limit:
+    return mf
+  if ((mf.n > 0 and _near(x, mf.pos0, spacing)) or (mf.n > 1 and _near(x, mf.pos1, spacing))
+      or (mf.n > 2 and _near(x, mf.pos2, spacing)) or (mf.n > 3 and _near(x, mf.pos3, spacing))):
+    return mf
+  out = mf
+  if mf.n == 0:
+    out.pos0 = x
+    out.dist0 = h
+  elif mf.n == 1:
+    out.pos1 = x
+    out.dist1 = h
+  elif mf.n == 2:
+    out.pos2 = x
+    out.dist2 = h
+  elif mf.n == 3:
+    out.pos3 = x
+    out.dist3 = h
+  else:
+    out.pos4 = x
+    out.dist4 = h
+  out.n = mf.n + 1
+  return out
+
+
+@wp.func
+def manifold_pos(mf: Manifold, k: int) -> wp.vec3:
+  """Contact k's position (a chain of selects: no run-time index)."""
+  return wp.where(k == 0, mf.pos0, wp.where(k == 1, mf.pos1, wp.where(k == 2, mf.pos2, wp.where(k == 3, mf.pos3,
+                                                                                                  mf.pos4))))
+
+
+@wp.func
+def manifold_dist(mf: Manifold, k: int) -> float:
+  """Contact k's signed distance."""
+  return wp.where(k == 0, mf.dist0, wp.where(k == 1, mf.dist1, wp.where(k == 2, mf.dist2, wp.where(k == 3, mf.dist3,
+                                                                                                     mf.dist4))))
+
+
+@wp.func
+def _set_dist(mf: Manifold, k: int, dist: float) -> Manifold:
+  out = mf
+  if k == 0:
+    out.dist0 = dist
+  elif k == 1:
+    out.dist1 = dist
+  elif k == 2:
+    out.dist2 = dist
+  elif k == 3:
+    out.dist3 = dist
+  else:
+    out.dist4 = dist
+  return out
+
+
+@wp.func
+def _set_pos(mf: Manifold, k: int, pos: wp.vec3) -> Manifold:
+  out = mf
+  if k == 0:
+    out.pos0 = pos
+  elif k == 1:
+    out.pos1 = pos
+  elif k == 2:
+    out.pos2 = pos
+  elif k == 3:
+    out.pos3 = pos
+  else:
+    out.pos4 = pos
+  return out
+
+
+@wp.func
+def _orientation(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, m: wp.vec3) -> float:
+  """+1 where the polygon p0, p1, p2, ... turns counter-clockwise about m, else -1."""
+  return wp.where(wp.dot(wp.cross(p1 - p0, p2 - p1), m) >= 0.0, 1.0, -1.0)
+
+
+@wp.func
+def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, m: wp.vec3,
+                    u: wp.vec3, v: wp.vec3, band: float, spacing: float, slack: float) -> Picks:
+  """The corners of the incident feature clipped to the reference face's side planes, streamed
+  into Picks, all in the reference shape's frame (m: the reference face's outward normal there):
+  each incident edge clipped on its own (Cyrus-Beck: a segment leaves a convex polygon's prism
+  as one piece), its piece's ends; and each reference corner inside the incident polygon seen
+  along m, lifted onto the incident plane. A corner on a side plane counts up to ``slack``."""
+  rot = wp.transpose(ref_shape.rot) @ inc_shape.rot
+  shift = wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos)
+  origin = _corner(ref_shape, ms, ref, 0)
+  wr = _orientation(origin, _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
+  picks = _new_picks()
+  segment = inc.kind == FACE_SEGMENT
+  nedge = wp.where(segment, 1, inc.nvert)
+  p = rot @ _corner(inc_shape, ms, inc, wp.where(segment, 0, inc.nvert - 1)) + shift
+  for e in range(nedge):
+    q = rot @ _corner(inc_shape, ms, inc, wp.where(segment, 1, e)) + shift
+    d = q - p
+    t0 = float(0.0)
+    t1 = float(1.0)
+    a = _corner(ref_shape, ms, ref, ref.nvert - 1)
+    for k in range(ref.nvert):
+      b = _corner(ref_shape, ms, ref, k)
+      inward = wr * wp.cross(m, b - a)
+      num = wp.dot(p - a, inward) + slack * wp.length(b - a)
+      den = wp.dot(d, inward)
+      if den > 0.0:
+        t0 = wp.max(t0, -num / den)
+      elif den < 0.0:
+        t1 = wp.min(t1, -num / den)
+      elif num < 0.0:
+        t1 = -1.0
+      a = b
+      if t0 > t1:
+        break
+    if t0 <= t1:
+      # each corner once: an edge gives where it enters (the previous edge gave its start when
+      # that is inside) and where it ends or leaves
+      if segment or t0 > 0.0:
+        x = p + t0 * d
+        picks = _pick(picks, x, wp.dot(x - origin, m), u, v, band, spacing)
+      x = wp.where(t1 >= 1.0, q, p + t1 * d)
+      picks = _pick(picks, x, wp.dot(x - origin, m), u, v, band, spacing)
+    p = q
+  if not segment:
+    i0 = rot @ _corner(inc_shape, ms, inc, 0) + shift
+    i1 = rot @ _corner(inc_shape, ms, inc, 1) + shift
+    i2 = rot @ _corner(inc_shape, ms, inc, 2) + shift
+    normal = wp.transpose(ref_shape.rot) @ inc.normal
+    cos = wp.dot(normal, m)
+    wi = _orientation(i0, i1, i2, m)
+    if cos < -1.0e-3:
+      for k in range(ref.nvert):
+        r = _corner(ref_shape, ms, ref, k)
+        inside = bool(True)
+        a = rot @ _corner(inc_shape, ms, inc, inc.nvert - 1) + shift
+        for j in range(inc.nvert):
+          b = rot @ _corner(inc_shape, ms, inc, j) + shift
+          if wi * wp.dot(wp.cross(b - a, r - a), m) < -slack * wp.length(b - a):
+            inside = False
+            break
+          a = b
+        if inside:
+          h = wp.dot(i0 - r, normal) / cos
+          picks = _pick(picks, r + h * m, h + wp.dot(r - origin, m), u, v, band, spacing)
+  return picks
+
+
+@wp.func
+def _chosen(picks: Picks, spacing: float, max_contacts: int, depth_margin: float) -> Manifold:
+  """Which streamed corners become contacts: all when there are no more than max_contacts
+  (distinct); else the deepest (where clearly deepest, DEEPEST_MARGIN) and the extremes along the
+  two directions across the reference face, both ways, in that order, repeats dropped."""
+  mf = Manifold()
+  mf.status = CLIPPED
+  mf.n = 0
+  if picks.n <= max_contacts:
+    mf = _put(mf, picks.x0, picks.h0, 0.0, picks.n)
+    mf = _put(mf, picks.x1, picks.h1, 0.0, picks.n)
+    mf = _put(mf, picks.x2, picks.h2, 0.0, picks.n)
+    mf = _put(mf, picks.x3, picks.h3, 0.0, picks.n)
+    mf = _put(mf, picks.x4, picks.h4, 0.0, picks.n)
+    return mf
+  shallowest = wp.min(wp.min(picks.e0_h, picks.e1_h), wp.min(picks.e2_h, picks.e3_h))
+  if picks.deep_h < shallowest - depth_margin:
+    mf = _put(mf, picks.deep, picks.deep_h, spacing, max_contacts)
+  mf = _put(mf, picks.e0, picks.e0_h, spacing, max_contacts)
+  mf = _put(mf, picks.e1, picks.e1_h, spacing, max_contacts)
+  mf = _put(mf, picks.e2, picks.e2_h, spacing, max_contacts)
+  mf = _put(mf, picks.e3, picks.e3_h, spacing, max_contacts)
+  return mf
+
+
+@wp.func
+def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, max_contacts: int,
+                  spacing: float) -> Manifold:
+  """The contacts of A and B by face clipping, where the first contact's normal n (from A to B)
+  lies along a flat face of one of them (within MuJoCo's multi-CCD tolerance FACE_TOL): that
+  face is the reference, the other shape's feature facing it the incident one. Where both
+  shapes offer such a face and the two are parallel (within FACE_TOL), A's is the reference,
+  as in MuJoCo. Status TILTS where neither does, the other shape meets the face in a point of a
+  curved surface, the polygons are over FACE_PAIR_BUDGET, or no corner lies within the band.
+
+  A is grown by its inflate (the margin band, as the narrow phase poses it); the faces are the
+  true ones and the band widens the height at which a corner still counts. ``scale``: the pair's
+  size (posed_pair), for tolerances; ``spacing``: corners closer are one.
+  """
+  out = Manifold()
+  out.status = TILTS
+  out.n = 0
+  band = a.inflate
+  bare = a
+  bare.inflate = 0.0
+  n = first.normal
+  fa = _flat_face(bare, ms, n, mode)
+  fb = _flat_face(b, ms, -n, mode)
+  ca = wp.where(fa.kind != FACE_NONE, wp.dot(fa.normal, n), -2.0)
+  cb = wp.where(fb.kind != FACE_NONE, wp.dot(fb.normal, -n), -2.0)
+  if wp.max(ca, cb) < FACE_TOL:
+    return out
+  # a face on a face (MuJoCo's test: the two faces anti-parallel within FACE_TOL): A's is the
+  # reference, as in MuJoCo; else the face along n
+  face_face = ca >= FACE_TOL and cb >= FACE_TOL and wp.dot(fa.normal, fb.normal) <= -FACE_TOL
+  ref_shape = bare
+  inc_shape = b
+  ref = fa
+  if not (ca >= FACE_TOL and (face_face or ca >= cb)):
+    ref_shape = b
+    inc_shape = bare
+    ref = fb
+  inc = _incident(inc_shape, ms, -ref.normal, mode)
+  if inc.kind == FACE_NONE or ref.nvert * inc.nvert > FACE_PAIR_BUDGET:
+    return out
+  # the reference face's frame: normal m, and two directions across it, from its corner 0 to
+  # the corner halfway round and square to that: a box face's diagonals, a round end's 16-gon
+  # corners 0, 4, 8, 12 are the extremes along them, clear of ties
+  m = wp.transpose(ref_shape.rot) @ ref.normal
+  u = _corner(ref_shape, ms, ref, 0) - _corner(ref_shape, ms, ref, ref.nvert // 2)
+  u = wp.normalize(u - wp.dot(u, m) * m)
+  v = wp.cross(m, u)
+  picks = _stream_corners(ref_shape, ref, inc_shape, inc, ms, m, u, v, band, spacing, ON_FACE_TOL * scale)
+  if picks.count == 0:
+    return out  # nothing within the band: not the face the first contact is on
+  max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
+  out = _chosen(picks, spacing, max_contacts, DEEPEST_MARGIN * first.depth)
+  # to the world: each contact midway between its corner and the corner's foot on the plane
+  for k in range(out.n):
+    x = manifold_pos(out, k)
+    out = _set_pos(out, k, ref_shape.rot @ (x - 0.5 * manifold_dist(out, k) * m) + ref_shape.pos)
+  # no corner deeper than the first contact; the deepest corner carries its depth (exact where
+  # the corners' is not: a round end's deepest point lies between two corners of its 16-gon)
+  floor = band - first.depth
+  deepest = int(0)
+  for k in range(out.n):
+    out = _set_dist(out, k, wp.max(manifold_dist(out, k), floor))
+    if manifold_dist(out, k) < manifold_dist(out, deepest):
+      deepest = k
+  if manifold_dist(out, deepest) > floor + MISSED_DEPTH * first.depth:
+    # the corners miss the first contact (an edge crossing the reference face's rim beside the
+    # incident face): it takes the last place
+    k = wp.min(out.n, max_contacts - 1)
+    out = _set_pos(out, k, first.pos - 0.5 * band * n)
+    out = _set_dist(out, k, floor)
+    out.n = k + 1
+  else:
+    out = _set_dist(out, deepest, floor)
+  return out

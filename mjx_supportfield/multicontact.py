@@ -21,6 +21,7 @@ import math
 import warp as wp
 from mujoco_warp._src.collision_gjk import EDGE_TOL
 from mujoco_warp._src.collision_gjk import FACE_TOL
+from mujoco_warp._src.collision_gjk import _area4
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 
@@ -410,7 +411,7 @@ def perturbed_contacts(
 MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's bound)
 # reference corners x incident corners above which a face pair goes to the tilts: the clipping
 # loops over every pair of them (a box face on a cylinder's end: 4 x 16)
-FACE_PAIR_BUDGET = 64
+FACE_PAIR_BUDGET = 96
 DISK_CORNERS = 16  # MuJoCo's polygon for a cylinder's end
 
 # kinds of Face
@@ -431,6 +432,22 @@ MISSED_DEPTH = 0.1
 # lying flat on a face all corners are as deep, and float32 rounding would pick a different one
 # each step
 DEEPEST_MARGIN = 0.1
+QUAD_TIE = 1.0e-6  # relative area below which two quadrilaterals tie (float32 rounding)
+
+
+# corners of each box face in MuJoCo's order (collision_gjk._box_face), 3 bits a corner (bit 0
+# set for +x, bit 1 for +y, bit 2 for +z), 12 bits a face: read with shifts, as a table indexed
+# at run time would sit in local memory on a GPU
+_BOX_FACE_CORNERS = ((7, 3, 1, 5), (2, 6, 4, 0), (2, 3, 7, 6), (4, 5, 1, 0), (6, 7, 5, 4), (3, 2, 0, 1))
+_BOX_FACE_CODES = [sum(c << (3 * k) for k, c in enumerate(face)) for face in _BOX_FACE_CORNERS]
+
+
+@wp.func
+def _box_face_code(face: int) -> int:
+  """The packed corners of box face ``face``."""
+  return wp.where(face == 0, wp.static(_BOX_FACE_CODES[0]), wp.where(face == 1, wp.static(_BOX_FACE_CODES[1]),
+    wp.where(face == 2, wp.static(_BOX_FACE_CODES[2]), wp.where(face == 3, wp.static(_BOX_FACE_CODES[3]),
+    wp.where(face == 4, wp.static(_BOX_FACE_CODES[4]), wp.static(_BOX_FACE_CODES[5]))))))
 
 
 @wp.struct
@@ -467,37 +484,27 @@ class Manifold:
 
 @wp.struct
 class Picks:
-  """The streamed corners (reference face's frame, height over the reference plane): the first
-  distinct ones (up to MAX_MANIFOLD; n = MAX_MANIFOLD + 1 once more came), the deepest, and the
-  extremes along two directions across the reference face, both ways. Scalar fields, no arrays: an
-  array indexed at run time lives in local memory on a GPU."""
+  """The streamed corners (reference shape's frame): the first distinct ones (up to
+  MAX_MANIFOLD; n = MAX_MANIFOLD + 1 once more came), the deepest, and the extremes along two
+  directions across the reference face, both ways. Positions only (a corner's height over the
+  reference plane and its extent along a direction are recomputed when needed), scalar fields,
+  no arrays: an array indexed at run time lives in local memory on a GPU, and every register
+  held through the streaming loops is one the clipping cannot use."""
 
   count: int
   n: int
+  whole: bool  # the incident polygon lies within the side planes and the band, uncut
   x0: wp.vec3
   x1: wp.vec3
   x2: wp.vec3
   x3: wp.vec3
   x4: wp.vec3
-  h0: float
-  h1: float
-  h2: float
-  h3: float
-  h4: float
   deep: wp.vec3
   deep_h: float
   e0: wp.vec3  # farthest along +u
   e1: wp.vec3  # -u
   e2: wp.vec3  # +v
   e3: wp.vec3  # -v
-  e0_h: float
-  e1_h: float
-  e2_h: float
-  e3_h: float
-  e0_s: float
-  e1_s: float
-  e2_s: float
-  e3_s: float
 
 
 @wp.func
@@ -583,18 +590,16 @@ def _incident(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
 
 @wp.func
 def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
-  """Corner k of face f of s, in the shape's frame, going round the face."""
+  """Corner k of face f of s, in the shape's frame, in MuJoCo's order (collision_gjk._box_face,
+  _mesh_face, _cylinder_face): clockwise seen from outside. MuJoCo's choice of corners follows
+  from where its clipped polygon starts (face_manifold)."""
   if f.kind == FACE_BOX:
-    axis = f.index // 2
-    i = (axis + 1) % 3
-    j = (axis + 2) % 3
-    sign = wp.where(f.index % 2 == 0, 1.0, -1.0)
-    u = wp.where(k == 0 or k == 3, 1.0, -1.0)
-    v = wp.where(k < 2, 1.0, -1.0)
-    return (_along_axis(axis, sign * _component(s.size, axis)) + _along_axis(i, u * _component(s.size, i))
-            + _along_axis(j, v * _component(s.size, j)))
+    code = (_box_face_code(f.index) >> (3 * k)) & 7
+    return wp.vec3(wp.where((code & 1) != 0, s.size[0], -s.size[0]), wp.where((code & 2) != 0, s.size[1], -s.size[1]),
+                   wp.where((code & 4) != 0, s.size[2], -s.size[2]))
   if f.kind == FACE_MESH:
-    return hull_point(ms, s.mesh, ms.poly_vert[ms.poly_vert_adr[f.index] + k])
+    # MuJoCo's hull polygons run counter-clockwise; collision_gjk._mesh_face reverses them
+    return hull_point(ms, s.mesh, ms.poly_vert[ms.poly_vert_adr[f.index] + f.nvert - 1 - k])
   if f.kind == FACE_DISK:
     # MuJoCo's 16-gon (collision_gjk._cylinder_face): its corners are where MuJoCo C's contacts lie
     sign = wp.where(f.index != 0, -1.0, 1.0)
@@ -608,30 +613,18 @@ def _new_picks() -> Picks:
   p = Picks()
   p.count = 0
   p.n = 0
+  p.whole = True
   p.x0 = wp.vec3(0.0)
   p.x1 = wp.vec3(0.0)
   p.x2 = wp.vec3(0.0)
   p.x3 = wp.vec3(0.0)
   p.x4 = wp.vec3(0.0)
-  p.h0 = 0.0
-  p.h1 = 0.0
-  p.h2 = 0.0
-  p.h3 = 0.0
-  p.h4 = 0.0
   p.deep = wp.vec3(0.0)
   p.deep_h = 1.0e30
   p.e0 = wp.vec3(0.0)
   p.e1 = wp.vec3(0.0)
   p.e2 = wp.vec3(0.0)
   p.e3 = wp.vec3(0.0)
-  p.e0_h = 0.0
-  p.e1_h = 0.0
-  p.e2_h = 0.0
-  p.e3_h = 0.0
-  p.e0_s = -1.0e30
-  p.e1_s = -1.0e30
-  p.e2_s = -1.0e30
-  p.e3_s = -1.0e30
   return p
 
 
@@ -645,9 +638,18 @@ def _pick(p: Picks, x: wp.vec3, h: float, u: wp.vec3, v: wp.vec3, band: float, s
   """Picks with corner x (height h over the reference plane) streamed in: ignored above the
   margin band; else kept among the first distinct corners, and in the deepest and extreme slots
   where it beats them (ties keep the earlier corner)."""
-  if h > band:
-    return p
   out = p
+  if h > band:
+    out.whole = False
+    return out
+  if p.count == 0:
+    # the first corner fills every slot: later ones must beat it
+    out.deep = x
+    out.deep_h = h
+    out.e0 = x
+    out.e1 = x
+    out.e2 = x
+    out.e3 = x
   out.count = p.count + 1
   seen = ((p.n > 0 and _near(x, p.x0, spacing)) or (p.n > 1 and _near(x, p.x1, spacing))
           or (p.n > 2 and _near(x, p.x2, spacing)) or (p.n > 3 and _near(x, p.x3, spacing))
@@ -655,41 +657,28 @@ def _pick(p: Picks, x: wp.vec3, h: float, u: wp.vec3, v: wp.vec3, band: float, s
   if not seen:
     if p.n == 0:
       out.x0 = x
-      out.h0 = h
     elif p.n == 1:
       out.x1 = x
-      out.h1 = h
     elif p.n == 2:
       out.x2 = x
-      out.h2 = h
     elif p.n == 3:
       out.x3 = x
-      out.h3 = h
     elif p.n == 4:
       out.x4 = x
-      out.h4 = h
     out.n = wp.min(p.n + 1, MAX_MANIFOLD + 1)
-  if h < p.deep_h:
+  if h < out.deep_h:
     out.deep = x
     out.deep_h = h
   su = wp.dot(x, u)
   sv = wp.dot(x, v)
-  if su > p.e0_s:
+  if su > wp.dot(out.e0, u):
     out.e0 = x
-    out.e0_h = h
-    out.e0_s = su
-  if -su > p.e1_s:
+  if su < wp.dot(out.e1, u):
     out.e1 = x
-    out.e1_h = h
-    out.e1_s = -su
-  if sv > p.e2_s:
+  if sv > wp.dot(out.e2, v):
     out.e2 = x
-    out.e2_h = h
-    out.e2_s = sv
-  if -sv > p.e3_s:
+  if sv < wp.dot(out.e3, v):
     out.e3 = x
-    out.e3_h = h
-    out.e3_s = -sv
   return out
 
 
@@ -774,6 +763,69 @@ def _orientation(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, m: wp.vec3) -> float:
 
 
 @wp.func
+def _relative(ref_shape: Shape, inc_shape: Shape):
+  """The incident shape's pose in the reference shape's frame: rotation and shift."""
+  return (wp.transpose(ref_shape.rot) @ inc_shape.rot,
+          wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos))
+
+
+@wp.func
+def _rotated_corner(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.vec3, start: int, i: int) -> wp.vec3:
+  """Corner start + i (cyclic) of face f of s, in the frame that rot and shift map it to."""
+  return rot @ _corner(s, ms, f, (start + i) % f.nvert) + shift
+
+
+@wp.func
+def _quad_area(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.vec3, start: int, a: int, b: int, c: int,
+               d: int) -> float:
+  return _area4(_rotated_corner(s, ms, f, rot, shift, start, a), _rotated_corner(s, ms, f, rot, shift, start, b),
+                _rotated_corner(s, ms, f, rot, shift, start, c), _rotated_corner(s, ms, f, rot, shift, start, d))
+
+
+@wp.func
+def _polygon_quad(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.vec3, start: int) -> wp.vec4i:
+  """collision_gjk._polygon_quad on face f of s read in place, from its corner ``start`` on: the
+  corners (counted from start) of a quadrilateral of locally largest area. A corner moves on only
+  for QUAD_TIE more area: on a round end (equal quadrilaterals) float32 rounding chose another
+  one every step, and a cylinder resting on its end crept."""
+  n = f.nvert
+  b = int(1)
+  c = int(2)
+  d = int(3)
+  res = wp.vec4i(0, b, c, d)
+  m = _quad_area(s, ms, f, rot, shift, start, 0, b, c, d)
+  for a in range(n):
+    while True:
+      m_next = _quad_area(s, ms, f, rot, shift, start, a, b, c, (d + 1) % n)
+      if m_next <= m * (1.0 + QUAD_TIE):
+        break
+      m = m_next
+      d = (d + 1) % n
+      res = wp.vec4i(a, b, c, d)
+      while True:
+        m_next = _quad_area(s, ms, f, rot, shift, start, a, b, (c + 1) % n, d)
+        if m_next <= m * (1.0 + QUAD_TIE):
+          break
+        m = m_next
+        c = (c + 1) % n
+        res = wp.vec4i(a, b, c, d)
+      while True:
+        m_next = _quad_area(s, ms, f, rot, shift, start, a, (b + 1) % n, c, d)
+        if m_next <= m * (1.0 + QUAD_TIE):
+          break
+        m = m_next
+        b = (b + 1) % n
+        res = wp.vec4i(a, b, c, d)
+    if b == a:
+      b = (b + 1) % n
+      if c == b:
+        c = (c + 1) % n
+        if d == c:
+          d = (d + 1) % n
+  return res
+
+
+@wp.func
 def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, m: wp.vec3,
                     u: wp.vec3, v: wp.vec3, band: float, spacing: float, slack: float) -> Picks:
   """The corners of the incident feature clipped to the reference face's side planes, streamed
@@ -781,8 +833,7 @@ def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms
   each incident edge clipped on its own (Cyrus-Beck: a segment leaves a convex polygon's prism
   as one piece), its piece's ends; and each reference corner inside the incident polygon seen
   along m, lifted onto the incident plane. A corner on a side plane counts up to ``slack``."""
-  rot = wp.transpose(ref_shape.rot) @ inc_shape.rot
-  shift = wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos)
+  rot, shift = _relative(ref_shape, inc_shape)
   origin = _corner(ref_shape, ms, ref, 0)
   wr = _orientation(origin, _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
   picks = _new_picks()
@@ -809,6 +860,8 @@ def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms
       a = b
       if t0 > t1:
         break
+    if t0 > 0.0 or t1 < 1.0:
+      picks.whole = False
     if t0 <= t1:
       # each corner once: an edge gives where it enters (the previous edge gave its start when
       # that is inside) and where it ends or leaves
@@ -837,33 +890,39 @@ def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms
             break
           a = b
         if inside:
+          picks.whole = False
           h = wp.dot(i0 - r, normal) / cos
           picks = _pick(picks, r + h * m, h + wp.dot(r - origin, m), u, v, band, spacing)
   return picks
 
 
 @wp.func
-def _chosen(picks: Picks, spacing: float, max_contacts: int, depth_margin: float) -> Manifold:
+def _chosen(picks: Picks, origin: wp.vec3, m: wp.vec3, spacing: float, max_contacts: int, depth_margin: float
+            ) -> Manifold:
   """Which streamed corners become contacts: all when there are no more than max_contacts
   (distinct); else the deepest (where clearly deepest, DEEPEST_MARGIN) and the extremes along the
-  two directions across the reference face, both ways, in that order, repeats dropped."""
+  two directions across the reference face, both ways, in that order, repeats dropped. Heights
+  over the reference plane (origin, normal m) in dist."""
   mf = Manifold()
   mf.status = CLIPPED
   mf.n = 0
   if picks.n <= max_contacts:
-    mf = _put(mf, picks.x0, picks.h0, 0.0, picks.n)
-    mf = _put(mf, picks.x1, picks.h1, 0.0, picks.n)
-    mf = _put(mf, picks.x2, picks.h2, 0.0, picks.n)
-    mf = _put(mf, picks.x3, picks.h3, 0.0, picks.n)
-    mf = _put(mf, picks.x4, picks.h4, 0.0, picks.n)
+    mf = _put(mf, picks.x0, wp.dot(picks.x0 - origin, m), 0.0, picks.n)
+    mf = _put(mf, picks.x1, wp.dot(picks.x1 - origin, m), 0.0, picks.n)
+    mf = _put(mf, picks.x2, wp.dot(picks.x2 - origin, m), 0.0, picks.n)
+    mf = _put(mf, picks.x3, wp.dot(picks.x3 - origin, m), 0.0, picks.n)
+    mf = _put(mf, picks.x4, wp.dot(picks.x4 - origin, m), 0.0, picks.n)
     return mf
-  shallowest = wp.min(wp.min(picks.e0_h, picks.e1_h), wp.min(picks.e2_h, picks.e3_h))
-  if picks.deep_h < shallowest - depth_margin:
+  h0 = wp.dot(picks.e0 - origin, m)
+  h1 = wp.dot(picks.e1 - origin, m)
+  h2 = wp.dot(picks.e2 - origin, m)
+  h3 = wp.dot(picks.e3 - origin, m)
+  if picks.deep_h < wp.min(wp.min(h0, h1), wp.min(h2, h3)) - depth_margin:
     mf = _put(mf, picks.deep, picks.deep_h, spacing, max_contacts)
-  mf = _put(mf, picks.e0, picks.e0_h, spacing, max_contacts)
-  mf = _put(mf, picks.e1, picks.e1_h, spacing, max_contacts)
-  mf = _put(mf, picks.e2, picks.e2_h, spacing, max_contacts)
-  mf = _put(mf, picks.e3, picks.e3_h, spacing, max_contacts)
+  mf = _put(mf, picks.e0, h0, spacing, max_contacts)
+  mf = _put(mf, picks.e1, h1, spacing, max_contacts)
+  mf = _put(mf, picks.e2, h2, spacing, max_contacts)
+  mf = _put(mf, picks.e3, h3, spacing, max_contacts)
   return mf
 
 
@@ -918,7 +977,20 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   if picks.count == 0:
     return out  # nothing within the band: not the face the first contact is on
   max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
-  out = _chosen(picks, spacing, max_contacts, DEEPEST_MARGIN * first.depth)
+  if picks.whole and picks.n > max_contacts and max_contacts >= 4:
+    # the incident polygon lies on the reference face uncut: MuJoCo's clipped polygon is that
+    # polygon, each of the reference face's side planes having moved its start on by one corner,
+    # and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
+    rot, shift = _relative(ref_shape, inc_shape)
+    start = ref.nvert % inc.nvert
+    quad = _polygon_quad(inc_shape, ms, inc, rot, shift, start)
+    out.status = CLIPPED
+    for k in range(4):
+      x = _rotated_corner(inc_shape, ms, inc, rot, shift, start, quad[k])
+      origin = _corner(ref_shape, ms, ref, 0)
+      out = _put(out, x, wp.dot(x - origin, m), 0.0, 4)
+  else:
+    out = _chosen(picks, _corner(ref_shape, ms, ref, 0), m, spacing, max_contacts, DEEPEST_MARGIN * first.depth)
   # to the world: each contact midway between its corner and the corner's foot on the plane
   for k in range(out.n):
     x = manifold_pos(out, k)

@@ -761,11 +761,9 @@ def manifold_kernel(
     cid = patch_pair[i]
     geoms = pair_in[cid]
     worldid = pair_worldid_in[cid]
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-      pair_friction, pair_in, pairid_in, cid, worldid,
-    )
+    # the contact parameters are read once the clipping is done: held through it, they took
+    # registers it needed
+    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
     band = wp.max(margin + gap, 0.0)
     a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                      geoms, worldid, patch_result[i], patch_pos[i])
@@ -776,6 +774,11 @@ def manifold_kernel(
     if found.status == TILTS:
       tilt_pair[wp.atomic_add(tilt_pair_count, 0, 1)] = i
       continue
+    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
+      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
+      pair_friction, pair_in, pairid_in, cid, worldid,
+    )
     frame = make_frame(res.normal)
     for k in range(found.n):
       write_contact(

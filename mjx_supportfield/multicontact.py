@@ -465,11 +465,14 @@ class Face:
 
 @wp.struct
 class Manifold:
-  """A clipped pair's contacts (status CLIPPED): midpoints and signed distances (negative:
-  penetration) of the true surfaces, margin band removed."""
+  """A clipped pair's contacts (status CLIPPED): midpoints, in the reference shape's frame, and
+  signed distances (negative: penetration) of the true surfaces, margin band removed. Contact
+  ``first`` (-1: none) is the first contact's, whose position is the caller's (world)."""
 
   status: int
   n: int
+  ref_is_b: bool  # the reference face is B's (else A's)
+  first: int
   pos0: wp.vec3
   pos1: wp.vec3
   pos2: wp.vec3
@@ -589,6 +592,18 @@ def _incident(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
 
 
 @wp.func
+def _disk_cos(k: int) -> float:
+  """cos(k pi / 8) from its five values in the first quadrant (sin(k pi / 8) = _disk_cos(k + 12)):
+  sinf and cosf keep a local array for their argument reduction on a GPU."""
+  j = k % 16
+  t = j % 8
+  t = wp.where(t > 4, 8 - t, t)
+  c = wp.where(t == 0, 1.0, wp.where(t == 1, wp.static(math.cos(math.pi / 8.0)), wp.where(
+    t == 2, wp.static(math.cos(math.pi / 4.0)), wp.where(t == 3, wp.static(math.cos(3.0 * math.pi / 8.0)), 0.0))))
+  return wp.where(j > 4 and j < 12, -c, c)
+
+
+@wp.func
 def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
   """Corner k of face f of s, in the shape's frame, in MuJoCo's order (collision_gjk._box_face,
   _mesh_face, _cylinder_face): clockwise seen from outside. MuJoCo's choice of corners follows
@@ -603,8 +618,7 @@ def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
   if f.kind == FACE_DISK:
     # MuJoCo's 16-gon (collision_gjk._cylinder_face): its corners are where MuJoCo C's contacts lie
     sign = wp.where(f.index != 0, -1.0, 1.0)
-    angle = float(k) * wp.static(2.0 * math.pi / DISK_CORNERS)
-    return wp.vec3(s.size[0] * wp.cos(angle), -sign * s.size[0] * wp.sin(angle), sign * s.size[1])
+    return wp.vec3(s.size[0] * _disk_cos(k), -sign * s.size[0] * _disk_cos(k + 12), sign * s.size[1])
   return wp.where(k == 0, f.p0, f.p1)
 
 
@@ -826,14 +840,15 @@ def _polygon_quad(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.v
 
 
 @wp.func
-def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, m: wp.vec3,
-                    u: wp.vec3, v: wp.vec3, band: float, spacing: float, slack: float) -> Picks:
+def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33,
+                    shift: wp.vec3, m: wp.vec3, u: wp.vec3, v: wp.vec3, band: float, spacing: float, slack: float
+                    ) -> Picks:
   """The corners of the incident feature clipped to the reference face's side planes, streamed
   into Picks, all in the reference shape's frame (m: the reference face's outward normal there):
   each incident edge clipped on its own (Cyrus-Beck: a segment leaves a convex polygon's prism
   as one piece), its piece's ends; and each reference corner inside the incident polygon seen
-  along m, lifted onto the incident plane. A corner on a side plane counts up to ``slack``."""
-  rot, shift = _relative(ref_shape, inc_shape)
+  along m, lifted onto the incident plane. A corner on a side plane counts up to ``slack``.
+  rot, shift: the incident shape's pose in the reference shape's frame."""
   origin = _corner(ref_shape, ms, ref, 0)
   wr = _orientation(origin, _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
   picks = _new_picks()
@@ -875,10 +890,12 @@ def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms
     i0 = rot @ _corner(inc_shape, ms, inc, 0) + shift
     i1 = rot @ _corner(inc_shape, ms, inc, 1) + shift
     i2 = rot @ _corner(inc_shape, ms, inc, 2) + shift
-    normal = wp.transpose(ref_shape.rot) @ inc.normal
+    # the incident plane's normal from its corners (either way round: the lift below divides
+    # it out): the shapes' rotations need not be held through the loops
+    normal = wp.normalize(wp.cross(i1 - i0, i2 - i1))
     cos = wp.dot(normal, m)
-    wi = _orientation(i0, i1, i2, m)
-    if cos < -1.0e-3:
+    wi = wp.where(cos >= 0.0, 1.0, -1.0)
+    if wp.abs(cos) > 1.0e-3:
       for k in range(ref.nvert):
         r = _corner(ref_shape, ms, ref, k)
         inside = bool(True)
@@ -906,6 +923,8 @@ def _chosen(picks: Picks, origin: wp.vec3, m: wp.vec3, spacing: float, max_conta
   mf = Manifold()
   mf.status = CLIPPED
   mf.n = 0
+  mf.ref_is_b = False
+  mf.first = -1
   if picks.n <= max_contacts:
     mf = _put(mf, picks.x0, wp.dot(picks.x0 - origin, m), 0.0, picks.n)
     mf = _put(mf, picks.x1, wp.dot(picks.x1 - origin, m), 0.0, picks.n)
@@ -943,6 +962,8 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   out = Manifold()
   out.status = TILTS
   out.n = 0
+  out.ref_is_b = False
+  out.first = -1
   band = a.inflate
   bare = a
   bare.inflate = 0.0
@@ -956,10 +977,11 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   # a face on a face (MuJoCo's test: the two faces anti-parallel within FACE_TOL): A's is the
   # reference, as in MuJoCo; else the face along n
   face_face = ca >= FACE_TOL and cb >= FACE_TOL and wp.dot(fa.normal, fb.normal) <= -FACE_TOL
+  ref_is_b = not (ca >= FACE_TOL and (face_face or ca >= cb))
   ref_shape = bare
   inc_shape = b
   ref = fa
-  if not (ca >= FACE_TOL and (face_face or ca >= cb)):
+  if ref_is_b:
     ref_shape = b
     inc_shape = bare
     ref = fb
@@ -973,28 +995,28 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   u = _corner(ref_shape, ms, ref, 0) - _corner(ref_shape, ms, ref, ref.nvert // 2)
   u = wp.normalize(u - wp.dot(u, m) * m)
   v = wp.cross(m, u)
-  picks = _stream_corners(ref_shape, ref, inc_shape, inc, ms, m, u, v, band, spacing, ON_FACE_TOL * scale)
+  rot, shift = _relative(ref_shape, inc_shape)
+  picks = _stream_corners(ref_shape, ref, inc_shape, inc, ms, rot, shift, m, u, v, band, spacing, ON_FACE_TOL * scale)
   if picks.count == 0:
     return out  # nothing within the band: not the face the first contact is on
   max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
+  origin = _corner(ref_shape, ms, ref, 0)
   if picks.whole and picks.n > max_contacts and max_contacts >= 4:
     # the incident polygon lies on the reference face uncut: MuJoCo's clipped polygon is that
     # polygon, each of the reference face's side planes having moved its start on by one corner,
     # and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
-    rot, shift = _relative(ref_shape, inc_shape)
     start = ref.nvert % inc.nvert
     quad = _polygon_quad(inc_shape, ms, inc, rot, shift, start)
     out.status = CLIPPED
     for k in range(4):
       x = _rotated_corner(inc_shape, ms, inc, rot, shift, start, quad[k])
-      origin = _corner(ref_shape, ms, ref, 0)
       out = _put(out, x, wp.dot(x - origin, m), 0.0, 4)
   else:
-    out = _chosen(picks, _corner(ref_shape, ms, ref, 0), m, spacing, max_contacts, DEEPEST_MARGIN * first.depth)
-  # to the world: each contact midway between its corner and the corner's foot on the plane
+    out = _chosen(picks, origin, m, spacing, max_contacts, DEEPEST_MARGIN * first.depth)
+  out.ref_is_b = ref_is_b
+  # each contact midway between its corner and the corner's foot on the plane
   for k in range(out.n):
-    x = manifold_pos(out, k)
-    out = _set_pos(out, k, ref_shape.rot @ (x - 0.5 * manifold_dist(out, k) * m) + ref_shape.pos)
+    out = _set_pos(out, k, manifold_pos(out, k) - 0.5 * manifold_dist(out, k) * m)
   # no corner deeper than the first contact; the deepest corner carries its depth (exact where
   # the corners' is not: a round end's deepest point lies between two corners of its 16-gon)
   floor = band - first.depth
@@ -1003,13 +1025,13 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
     out = _set_dist(out, k, wp.max(manifold_dist(out, k), floor))
     if manifold_dist(out, k) < manifold_dist(out, deepest):
       deepest = k
+  out.first = -1
   if manifold_dist(out, deepest) > floor + MISSED_DEPTH * first.depth:
     # the corners miss the first contact (an edge crossing the reference face's rim beside the
     # incident face): it takes the last place
-    k = wp.min(out.n, max_contacts - 1)
-    out = _set_pos(out, k, first.pos - 0.5 * band * n)
-    out = _set_dist(out, k, floor)
-    out.n = k + 1
+    out.first = wp.min(out.n, max_contacts - 1)
+    out = _set_dist(out, out.first, floor)
+    out.n = out.first + 1
   else:
     out = _set_dist(out, deepest, floor)
   return out

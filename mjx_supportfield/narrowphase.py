@@ -780,9 +780,17 @@ def manifold_kernel(
       pair_friction, pair_in, pairid_in, cid, worldid,
     )
     frame = make_frame(res.normal)
+    # the clipped corners lie in the reference shape's frame: its pose read again here, not held
+    # through the clipping
+    ref_geom = geoms[wp.where(found.ref_is_b, 1, 0)]
+    rot = geom_xmat_in[worldid, ref_geom]
+    shift = geom_xpos_in[worldid, ref_geom]
     for k in range(found.n):
+      pos = rot @ manifold_pos(found, k) + shift
+      if k == found.first:
+        pos = res.pos - 0.5 * band * res.normal
       write_contact(
-        naconmax_in, k, manifold_dist(found, k), manifold_pos(found, k), frame, margin, gap,
+        naconmax_in, k, manifold_dist(found, k), pos, frame, margin, gap,
         condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
         contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
         contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,

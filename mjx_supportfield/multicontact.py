@@ -487,27 +487,37 @@ class Manifold:
 
 @wp.struct
 class Picks:
-  """The streamed corners (reference shape's frame): the first distinct ones (up to
-  MAX_MANIFOLD; n = MAX_MANIFOLD + 1 once more came), the deepest, and the extremes along two
-  directions across the reference face, both ways. Positions only (a corner's height over the
-  reference plane and its extent along a direction are recomputed when needed), scalar fields,
-  no arrays: an array indexed at run time lives in local memory on a GPU, and every register
-  held through the streaming loops is one the clipping cannot use."""
+  """The streamed corners of a clipped polygon, by their coordinates (a, b) along two directions
+  u, v across the reference face (a corner's height follows from the incident plane it lies
+  on): the first distinct ones (up to MAX_MANIFOLD; n = MAX_MANIFOLD + 1 once more came), the
+  deepest, and the extremes along u and v, both ways. Scalar fields, no arrays: an array indexed
+  at run time lives in local memory on a GPU, and every register held through the streaming
+  loops is one the clipping cannot use."""
 
   count: int
   n: int
   whole: bool  # the incident polygon lies within the side planes and the band, uncut
-  x0: wp.vec3
-  x1: wp.vec3
-  x2: wp.vec3
-  x3: wp.vec3
-  x4: wp.vec3
-  deep: wp.vec3
+  a0: float
+  b0: float
+  a1: float
+  b1: float
+  a2: float
+  b2: float
+  a3: float
+  b3: float
+  a4: float
+  b4: float
+  deep_a: float
+  deep_b: float
   deep_h: float
-  e0: wp.vec3  # farthest along +u
-  e1: wp.vec3  # -u
-  e2: wp.vec3  # +v
-  e3: wp.vec3  # -v
+  e0a: float  # farthest along +u
+  e0b: float
+  e1a: float  # -u
+  e1b: float
+  e2a: float  # +v
+  e2b: float
+  e3a: float  # -v
+  e3b: float
 
 
 @wp.func
@@ -628,17 +638,27 @@ def _new_picks() -> Picks:
   p.count = 0
   p.n = 0
   p.whole = True
-  p.x0 = wp.vec3(0.0)
-  p.x1 = wp.vec3(0.0)
-  p.x2 = wp.vec3(0.0)
-  p.x3 = wp.vec3(0.0)
-  p.x4 = wp.vec3(0.0)
-  p.deep = wp.vec3(0.0)
+  p.a0 = 0.0
+  p.b0 = 0.0
+  p.a1 = 0.0
+  p.b1 = 0.0
+  p.a2 = 0.0
+  p.b2 = 0.0
+  p.a3 = 0.0
+  p.b3 = 0.0
+  p.a4 = 0.0
+  p.b4 = 0.0
+  p.deep_a = 0.0
+  p.deep_b = 0.0
   p.deep_h = 1.0e30
-  p.e0 = wp.vec3(0.0)
-  p.e1 = wp.vec3(0.0)
-  p.e2 = wp.vec3(0.0)
-  p.e3 = wp.vec3(0.0)
+  p.e0a = 0.0
+  p.e0b = 0.0
+  p.e1a = 0.0
+  p.e1b = 0.0
+  p.e2a = 0.0
+  p.e2b = 0.0
+  p.e3a = 0.0
+  p.e3b = 0.0
   return p
 
 
@@ -648,51 +668,69 @@ def _near(a: wp.vec3, b: wp.vec3, spacing: float) -> bool:
 
 
 @wp.func
-def _pick(p: Picks, x: wp.vec3, h: float, u: wp.vec3, v: wp.vec3, band: float, spacing: float) -> Picks:
-  """Picks with corner x (height h over the reference plane) streamed in: ignored above the
-  margin band; else kept among the first distinct corners, and in the deepest and extreme slots
-  where it beats them (ties keep the earlier corner)."""
+def _near2(a0: float, b0: float, a1: float, b1: float, spacing: float) -> bool:
+  return (a0 - a1) * (a0 - a1) + (b0 - b1) * (b0 - b1) < spacing * spacing
+
+
+@wp.func
+def _pick(p: Picks, a: float, b: float, h: float, band: float, spacing: float) -> Picks:
+  """Picks with the corner at (a, b), height h over the reference plane, streamed in: ignored
+  above the margin band; else kept among the first distinct corners, and in the deepest and
+  extreme slots where it beats them (ties keep the earlier corner)."""
   out = p
   if h > band:
     out.whole = False
     return out
   if p.count == 0:
     # the first corner fills every slot: later ones must beat it
-    out.deep = x
+    out.deep_a = a
+    out.deep_b = b
     out.deep_h = h
-    out.e0 = x
-    out.e1 = x
-    out.e2 = x
-    out.e3 = x
+    out.e0a = a
+    out.e0b = b
+    out.e1a = a
+    out.e1b = b
+    out.e2a = a
+    out.e2b = b
+    out.e3a = a
+    out.e3b = b
   out.count = p.count + 1
-  seen = ((p.n > 0 and _near(x, p.x0, spacing)) or (p.n > 1 and _near(x, p.x1, spacing))
-          or (p.n > 2 and _near(x, p.x2, spacing)) or (p.n > 3 and _near(x, p.x3, spacing))
-          or (p.n > 4 and _near(x, p.x4, spacing)))
+  seen = ((p.n > 0 and _near2(a, b, p.a0, p.b0, spacing)) or (p.n > 1 and _near2(a, b, p.a1, p.b1, spacing))
+          or (p.n > 2 and _near2(a, b, p.a2, p.b2, spacing)) or (p.n > 3 and _near2(a, b, p.a3, p.b3, spacing))
+          or (p.n > 4 and _near2(a, b, p.a4, p.b4, spacing)))
   if not seen:
     if p.n == 0:
-      out.x0 = x
+      out.a0 = a
+      out.b0 = b
     elif p.n == 1:
-      out.x1 = x
+      out.a1 = a
+      out.b1 = b
     elif p.n == 2:
-      out.x2 = x
+      out.a2 = a
+      out.b2 = b
     elif p.n == 3:
-      out.x3 = x
+      out.a3 = a
+      out.b3 = b
     elif p.n == 4:
-      out.x4 = x
+      out.a4 = a
+      out.b4 = b
     out.n = wp.min(p.n + 1, MAX_MANIFOLD + 1)
   if h < out.deep_h:
-    out.deep = x
+    out.deep_a = a
+    out.deep_b = b
     out.deep_h = h
-  su = wp.dot(x, u)
-  sv = wp.dot(x, v)
-  if su > wp.dot(out.e0, u):
-    out.e0 = x
-  if su < wp.dot(out.e1, u):
-    out.e1 = x
-  if sv > wp.dot(out.e2, v):
-    out.e2 = x
-  if sv < wp.dot(out.e3, v):
-    out.e3 = x
+  if a > out.e0a:
+    out.e0a = a
+    out.e0b = b
+  if a < out.e1a:
+    out.e1a = a
+    out.e1b = b
+  if b > out.e2b:
+    out.e2a = a
+    out.e2b = b
+  if b < out.e3b:
+    out.e3a = a
+    out.e3b = b
   return out
 
 
@@ -840,108 +878,159 @@ def _polygon_quad(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.v
 
 
 @wp.func
-def _stream_corners(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33,
-                    shift: wp.vec3, m: wp.vec3, u: wp.vec3, v: wp.vec3, band: float, spacing: float, slack: float
-                    ) -> Picks:
-  """The corners of the incident feature clipped to the reference face's side planes, streamed
-  into Picks, all in the reference shape's frame (m: the reference face's outward normal there):
-  each incident edge clipped on its own (Cyrus-Beck: a segment leaves a convex polygon's prism
-  as one piece), its piece's ends; and each reference corner inside the incident polygon seen
-  along m, lifted onto the incident plane. A corner on a side plane counts up to ``slack``.
-  rot, shift: the incident shape's pose in the reference shape's frame."""
-  origin = _corner(ref_shape, ms, ref, 0)
-  wr = _orientation(origin, _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
+def _clip_segment(ref_shape: Shape, ref: Face, ms: MeshSupport, m: wp.vec3, wr: float, p: wp.vec3, q: wp.vec3,
+                  slack: float) -> wp.vec2:
+  """Cyrus-Beck: the piece [t0, t1] of segment p + t (q - p), t in [0, 1], within the side
+  planes of the reference face (t0 > t1: none). A segment leaves a convex polygon's prism as one
+  piece. wr: +1 where the face's corners turn counter-clockwise about its normal m, else -1; a
+  point on a side plane counts up to ``slack``."""
+  d = q - p
+  t0 = float(0.0)
+  t1 = float(1.0)
+  a = _corner(ref_shape, ms, ref, ref.nvert - 1)
+  for k in range(ref.nvert):
+    b = _corner(ref_shape, ms, ref, k)
+    inward = wr * wp.cross(m, b - a)
+    num = wp.dot(p - a, inward) + slack * wp.length(b - a)
+    den = wp.dot(d, inward)
+    if den > 0.0:
+      t0 = wp.max(t0, -num / den)
+    elif den < 0.0:
+      t1 = wp.min(t1, -num / den)
+    elif num < 0.0:
+      t1 = -1.0
+    a = b
+    if t0 > t1:
+      break
+  return wp.vec2(t0, t1)
+
+
+@wp.func
+def _incident_plane(inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33, shift: wp.vec3) -> wp.vec4:
+  """The incident polygon's plane in the reference shape's frame, from its corners: unit normal
+  (xyz, either way round) and offset (w). Recomputed where needed rather than held."""
+  i0 = rot @ _corner(inc_shape, ms, inc, 0) + shift
+  i1 = rot @ _corner(inc_shape, ms, inc, 1) + shift
+  i2 = rot @ _corner(inc_shape, ms, inc, 2) + shift
+  normal = wp.normalize(wp.cross(i1 - i0, i2 - i1))
+  return wp.vec4(normal[0], normal[1], normal[2], wp.dot(i0, normal))
+
+
+@wp.func
+def _lift(a: float, b: float, u: wp.vec3, v: wp.vec3, m: wp.vec3, plane: wp.vec4) -> wp.vec3:
+  """The point at (a, b) across the reference face on the incident plane."""
+  normal = wp.vec3(plane[0], plane[1], plane[2])
+  return a * u + b * v + (plane[3] - a * wp.dot(u, normal) - b * wp.dot(v, normal)) / wp.dot(m, normal) * m
+
+
+@wp.func
+def _stream_polygon(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33,
+                    shift: wp.vec3, m: wp.vec3, u: wp.vec3, v: wp.vec3, plane_offset: float, band: float,
+                    spacing: float, slack: float) -> Picks:
+  """The corners of the incident polygon clipped to the reference face's side planes, streamed
+  into Picks, all in the reference shape's frame (reference plane: dot(x, m) = plane_offset;
+  rot, shift: the incident shape's pose in that frame): each incident edge clipped on its own
+  (_clip_segment), its piece's ends; and each reference corner inside the incident polygon seen
+  along m, lifted onto the incident plane."""
+  wr = _orientation(_corner(ref_shape, ms, ref, 0), _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
   picks = _new_picks()
-  segment = inc.kind == FACE_SEGMENT
-  nedge = wp.where(segment, 1, inc.nvert)
-  p = rot @ _corner(inc_shape, ms, inc, wp.where(segment, 0, inc.nvert - 1)) + shift
-  for e in range(nedge):
-    q = rot @ _corner(inc_shape, ms, inc, wp.where(segment, 1, e)) + shift
-    d = q - p
-    t0 = float(0.0)
-    t1 = float(1.0)
-    a = _corner(ref_shape, ms, ref, ref.nvert - 1)
-    for k in range(ref.nvert):
-      b = _corner(ref_shape, ms, ref, k)
-      inward = wr * wp.cross(m, b - a)
-      num = wp.dot(p - a, inward) + slack * wp.length(b - a)
-      den = wp.dot(d, inward)
-      if den > 0.0:
-        t0 = wp.max(t0, -num / den)
-      elif den < 0.0:
-        t1 = wp.min(t1, -num / den)
-      elif num < 0.0:
-        t1 = -1.0
-      a = b
-      if t0 > t1:
-        break
-    if t0 > 0.0 or t1 < 1.0:
+  p = rot @ _corner(inc_shape, ms, inc, inc.nvert - 1) + shift
+  for e in range(inc.nvert):
+    q = rot @ _corner(inc_shape, ms, inc, e) + shift
+    t = _clip_segment(ref_shape, ref, ms, m, wr, p, q, slack)
+    if t[0] > 0.0 or t[1] < 1.0:
       picks.whole = False
-    if t0 <= t1:
+    if t[0] <= t[1]:
       # each corner once: an edge gives where it enters (the previous edge gave its start when
       # that is inside) and where it ends or leaves
-      if segment or t0 > 0.0:
-        x = p + t0 * d
-        picks = _pick(picks, x, wp.dot(x - origin, m), u, v, band, spacing)
-      x = wp.where(t1 >= 1.0, q, p + t1 * d)
-      picks = _pick(picks, x, wp.dot(x - origin, m), u, v, band, spacing)
+      if t[0] > 0.0:
+        x = p + t[0] * (q - p)
+        picks = _pick(picks, wp.dot(x, u), wp.dot(x, v), wp.dot(x, m) - plane_offset, band, spacing)
+      x = wp.where(t[1] >= 1.0, q, p + t[1] * (q - p))
+      picks = _pick(picks, wp.dot(x, u), wp.dot(x, v), wp.dot(x, m) - plane_offset, band, spacing)
     p = q
-  if not segment:
-    i0 = rot @ _corner(inc_shape, ms, inc, 0) + shift
-    i1 = rot @ _corner(inc_shape, ms, inc, 1) + shift
-    i2 = rot @ _corner(inc_shape, ms, inc, 2) + shift
-    # the incident plane's normal from its corners (either way round: the lift below divides
-    # it out): the shapes' rotations need not be held through the loops
-    normal = wp.normalize(wp.cross(i1 - i0, i2 - i1))
-    cos = wp.dot(normal, m)
-    wi = wp.where(cos >= 0.0, 1.0, -1.0)
-    if wp.abs(cos) > 1.0e-3:
-      for k in range(ref.nvert):
-        r = _corner(ref_shape, ms, ref, k)
-        inside = bool(True)
-        a = rot @ _corner(inc_shape, ms, inc, inc.nvert - 1) + shift
-        for j in range(inc.nvert):
-          b = rot @ _corner(inc_shape, ms, inc, j) + shift
-          if wi * wp.dot(wp.cross(b - a, r - a), m) < -slack * wp.length(b - a):
-            inside = False
-            break
-          a = b
-        if inside:
-          picks.whole = False
-          h = wp.dot(i0 - r, normal) / cos
-          picks = _pick(picks, r + h * m, h + wp.dot(r - origin, m), u, v, band, spacing)
+  plane = _incident_plane(inc_shape, inc, ms, rot, shift)
+  normal = wp.vec3(plane[0], plane[1], plane[2])
+  cos = wp.dot(normal, m)
+  wi = wp.where(cos >= 0.0, 1.0, -1.0)
+  for k in range(ref.nvert):
+    r = _corner(ref_shape, ms, ref, k)
+    inside = bool(True)
+    a = rot @ _corner(inc_shape, ms, inc, inc.nvert - 1) + shift
+    for j in range(inc.nvert):
+      b = rot @ _corner(inc_shape, ms, inc, j) + shift
+      if wi * wp.dot(wp.cross(b - a, r - a), m) < -slack * wp.length(b - a):
+        inside = False
+        break
+      a = b
+    if inside:
+      picks.whole = False
+      h = (plane[3] - wp.dot(r, normal)) / cos
+      picks = _pick(picks, wp.dot(r, u), wp.dot(r, v), h + wp.dot(r, m) - plane_offset, band, spacing)
   return picks
 
 
 @wp.func
-def _chosen(picks: Picks, origin: wp.vec3, m: wp.vec3, spacing: float, max_contacts: int, depth_margin: float
-            ) -> Manifold:
+def _chosen(picks: Picks, u: wp.vec3, v: wp.vec3, m: wp.vec3, plane_offset: float, plane: wp.vec4, spacing: float,
+            max_contacts: int, depth_margin: float) -> Manifold:
   """Which streamed corners become contacts: all when there are no more than max_contacts
-  (distinct); else the deepest (where clearly deepest, DEEPEST_MARGIN) and the extremes along the
-  two directions across the reference face, both ways, in that order, repeats dropped. Heights
-  over the reference plane (origin, normal m) in dist."""
+  (distinct); else the deepest (where clearly deepest, DEEPEST_MARGIN) and the extremes along u
+  and v, both ways, in that order, repeats dropped. Corners lifted onto the incident plane
+  (plane), heights over the reference plane (dot(x, m) = plane_offset) in dist."""
   mf = Manifold()
   mf.status = CLIPPED
   mf.n = 0
   mf.ref_is_b = False
   mf.first = -1
   if picks.n <= max_contacts:
-    mf = _put(mf, picks.x0, wp.dot(picks.x0 - origin, m), 0.0, picks.n)
-    mf = _put(mf, picks.x1, wp.dot(picks.x1 - origin, m), 0.0, picks.n)
-    mf = _put(mf, picks.x2, wp.dot(picks.x2 - origin, m), 0.0, picks.n)
-    mf = _put(mf, picks.x3, wp.dot(picks.x3 - origin, m), 0.0, picks.n)
-    mf = _put(mf, picks.x4, wp.dot(picks.x4 - origin, m), 0.0, picks.n)
+    for k in range(MAX_MANIFOLD):
+      a = wp.where(k == 0, picks.a0, wp.where(k == 1, picks.a1, wp.where(k == 2, picks.a2, wp.where(
+        k == 3, picks.a3, picks.a4))))
+      b = wp.where(k == 0, picks.b0, wp.where(k == 1, picks.b1, wp.where(k == 2, picks.b2, wp.where(
+        k == 3, picks.b3, picks.b4))))
+      x = _lift(a, b, u, v, m, plane)
+      mf = _put(mf, x, wp.dot(x, m) - plane_offset, 0.0, picks.n)
     return mf
-  h0 = wp.dot(picks.e0 - origin, m)
-  h1 = wp.dot(picks.e1 - origin, m)
-  h2 = wp.dot(picks.e2 - origin, m)
-  h3 = wp.dot(picks.e3 - origin, m)
+  x0 = _lift(picks.e0a, picks.e0b, u, v, m, plane)
+  x1 = _lift(picks.e1a, picks.e1b, u, v, m, plane)
+  x2 = _lift(picks.e2a, picks.e2b, u, v, m, plane)
+  x3 = _lift(picks.e3a, picks.e3b, u, v, m, plane)
+  h0 = wp.dot(x0, m) - plane_offset
+  h1 = wp.dot(x1, m) - plane_offset
+  h2 = wp.dot(x2, m) - plane_offset
+  h3 = wp.dot(x3, m) - plane_offset
   if picks.deep_h < wp.min(wp.min(h0, h1), wp.min(h2, h3)) - depth_margin:
-    mf = _put(mf, picks.deep, picks.deep_h, spacing, max_contacts)
-  mf = _put(mf, picks.e0, h0, spacing, max_contacts)
-  mf = _put(mf, picks.e1, h1, spacing, max_contacts)
-  mf = _put(mf, picks.e2, h2, spacing, max_contacts)
-  mf = _put(mf, picks.e3, h3, spacing, max_contacts)
+    x = _lift(picks.deep_a, picks.deep_b, u, v, m, plane)
+    mf = _put(mf, x, wp.dot(x, m) - plane_offset, spacing, max_contacts)
+  mf = _put(mf, x0, h0, spacing, max_contacts)
+  mf = _put(mf, x1, h1, spacing, max_contacts)
+  mf = _put(mf, x2, h2, spacing, max_contacts)
+  mf = _put(mf, x3, h3, spacing, max_contacts)
+  return mf
+
+
+@wp.func
+def _segment_manifold(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33,
+                      shift: wp.vec3, m: wp.vec3, plane_offset: float, band: float, spacing: float,
+                      slack: float) -> Manifold:
+  """A line (a cylinder's side, a capsule's) on the reference face: the ends of its piece within
+  the side planes, those within the band."""
+  mf = Manifold()
+  mf.status = CLIPPED
+  mf.n = 0
+  mf.ref_is_b = False
+  mf.first = -1
+  wr = _orientation(_corner(ref_shape, ms, ref, 0), _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
+  p = rot @ inc.p0 + shift
+  q = rot @ inc.p1 + shift
+  t = _clip_segment(ref_shape, ref, ms, m, wr, p, q, slack)
+  if t[0] <= t[1]:
+    x = p + t[0] * (q - p)
+    if wp.dot(x, m) - plane_offset <= band:
+      mf = _put(mf, x, wp.dot(x, m) - plane_offset, spacing, 2)
+    x = p + t[1] * (q - p)
+    if wp.dot(x, m) - plane_offset <= band:
+      mf = _put(mf, x, wp.dot(x, m) - plane_offset, spacing, 2)
   return mf
 
 
@@ -996,23 +1085,33 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   u = wp.normalize(u - wp.dot(u, m) * m)
   v = wp.cross(m, u)
   rot, shift = _relative(ref_shape, inc_shape)
-  picks = _stream_corners(ref_shape, ref, inc_shape, inc, ms, rot, shift, m, u, v, band, spacing, ON_FACE_TOL * scale)
-  if picks.count == 0:
-    return out  # nothing within the band: not the face the first contact is on
+  plane_offset = wp.dot(_corner(ref_shape, ms, ref, 0), m)
   max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
-  origin = _corner(ref_shape, ms, ref, 0)
-  if picks.whole and picks.n > max_contacts and max_contacts >= 4:
-    # the incident polygon lies on the reference face uncut: MuJoCo's clipped polygon is that
-    # polygon, each of the reference face's side planes having moved its start on by one corner,
-    # and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
-    start = ref.nvert % inc.nvert
-    quad = _polygon_quad(inc_shape, ms, inc, rot, shift, start)
-    out.status = CLIPPED
-    for k in range(4):
-      x = _rotated_corner(inc_shape, ms, inc, rot, shift, start, quad[k])
-      out = _put(out, x, wp.dot(x - origin, m), 0.0, 4)
+  if inc.kind == FACE_SEGMENT:
+    out = _segment_manifold(ref_shape, ref, inc_shape, inc, ms, rot, shift, m, plane_offset, band, spacing,
+                            ON_FACE_TOL * scale)
   else:
-    out = _chosen(picks, origin, m, spacing, max_contacts, DEEPEST_MARGIN * first.depth)
+    plane = _incident_plane(inc_shape, inc, ms, rot, shift)
+    if wp.abs(wp.dot(wp.vec3(plane[0], plane[1], plane[2]), m)) < 1.0e-3:
+      return out  # the incident face stands on edge: no polygon to clip
+    picks = _stream_polygon(ref_shape, ref, inc_shape, inc, ms, rot, shift, m, u, v, plane_offset, band, spacing,
+                            ON_FACE_TOL * scale)
+    if picks.whole and picks.n > max_contacts and max_contacts >= 4:
+      # the incident polygon lies on the reference face uncut: MuJoCo's clipped polygon is that
+      # polygon, each of the reference face's side planes having moved its start on by one
+      # corner, and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
+      start = ref.nvert % inc.nvert
+      quad = _polygon_quad(inc_shape, ms, inc, rot, shift, start)
+      out.status = CLIPPED
+      for k in range(4):
+        x = _rotated_corner(inc_shape, ms, inc, rot, shift, start, quad[k])
+        out = _put(out, x, wp.dot(x, m) - plane_offset, 0.0, 4)
+    else:
+      out = _chosen(picks, u, v, m, plane_offset, _incident_plane(inc_shape, inc, ms, rot, shift), spacing,
+                    max_contacts, DEEPEST_MARGIN * first.depth)
+  if out.n == 0:
+    out.status = TILTS
+    return out  # nothing within the band: not the face the first contact is on
   out.ref_is_b = ref_is_b
   # each contact midway between its corner and the corner's foot on the plane
   for k in range(out.n):

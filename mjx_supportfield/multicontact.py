@@ -1035,14 +1035,75 @@ def _segment_manifold(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, 
 
 
 @wp.func
-def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, max_contacts: int,
-                  spacing: float) -> Manifold:
-  """The contacts of A and B by face clipping, where the first contact's normal n (from A to B)
-  lies along a flat face of one of them (within MuJoCo's multi-CCD tolerance FACE_TOL): that
-  face is the reference, the other shape's feature facing it the incident one. Where both
-  shapes offer such a face and the two are parallel (within FACE_TOL), A's is the reference,
-  as in MuJoCo. Status TILTS where neither does, the other shape meets the face in a point of a
-  curved surface, the polygons are over FACE_PAIR_BUDGET, or no corner lies within the band.
+def face_code(f: Face) -> int:
+  """A face as one int (kind and index), for the queue between face_pair and clip_faces."""
+  return f.index * 8 + f.kind
+
+
+@wp.func
+def _face_from_code(s: Shape, ms: MeshSupport, code: int, toward: wp.vec3) -> Face:
+  """The face of s that face_code gave ``code``; a segment is found again facing world
+  direction ``toward``."""
+  kind = code & 7
+  if kind == FACE_SEGMENT:
+    return _incident(s, ms, toward, 0)
+  f = _no_face()
+  f.kind = kind
+  f.index = code >> 3
+  local = wp.vec3(0.0)
+  if kind == FACE_BOX:
+    f.nvert = 4
+    local = _along_axis(f.index // 2, wp.where(f.index % 2 == 0, 1.0, -1.0))
+  elif kind == FACE_DISK:
+    f.nvert = DISK_CORNERS
+    local = wp.vec3(0.0, 0.0, wp.where(f.index == 0, 1.0, -1.0))
+  elif kind == FACE_MESH:
+    f.nvert = ms.poly_vert_num[f.index]
+    local = ms.poly_normal[f.index]
+  f.normal = s.rot @ local
+  return f
+
+
+@wp.func
+def face_pair(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec3i:
+  """Whether A and B touch face on feature along the first contact's normal (from A to B): the
+  flat face of one of them along it (within MuJoCo's multi-CCD tolerance FACE_TOL) is the
+  reference, the other shape's feature facing it the incident one. Where both shapes offer such
+  a face and the two are parallel (within FACE_TOL), A's is the reference, as in MuJoCo.
+  Returns (1 where the reference is B's, else 0; the reference's face_code; the incident's), or
+  x = -1 where the pair is left to the tilts: neither has a face there, the other shape meets
+  it in a point of a curved surface, or the polygons are over FACE_PAIR_BUDGET."""
+  none = wp.vec3i(-1, 0, 0)
+  fa = _flat_face(a, ms, normal, mode)
+  fb = _flat_face(b, ms, -normal, mode)
+  ca = wp.where(fa.kind != FACE_NONE, wp.dot(fa.normal, normal), -2.0)
+  cb = wp.where(fb.kind != FACE_NONE, wp.dot(fb.normal, -normal), -2.0)
+  if wp.max(ca, cb) < FACE_TOL:
+    return none
+  # a face on a face (MuJoCo's test: the two faces anti-parallel within FACE_TOL): A's is the
+  # reference, as in MuJoCo; else the face along the normal
+  face_face = ca >= FACE_TOL and cb >= FACE_TOL and wp.dot(fa.normal, fb.normal) <= -FACE_TOL
+  ref_is_b = not (ca >= FACE_TOL and (face_face or ca >= cb))
+  ref = fa
+  inc = _no_face()
+  if ref_is_b:
+    ref = fb
+    inc = _incident(a, ms, -fb.normal, mode)
+  else:
+    inc = _incident(b, ms, -fa.normal, mode)
+  if inc.kind == FACE_NONE or ref.nvert * inc.nvert > FACE_PAIR_BUDGET:
+    return none
+  return wp.vec3i(wp.where(ref_is_b, 1, 0), face_code(ref), face_code(inc))
+
+
+@wp.func
+def clip_faces(a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: float, max_contacts: int,
+               spacing: float, faces: wp.vec3i) -> Manifold:
+  """The contacts of A and B by face clipping on the faces face_pair found (``faces``): the
+  incident feature clipped to the reference face's side planes, its corners within the margin
+  band of the reference plane (module notes), at most max_contacts. Status TILTS where no corner
+  lies within the band (not the face the first contact is on) or the incident face stands on
+  edge.
 
   A is grown by its inflate (the margin band, as the narrow phase poses it); the faces are the
   true ones and the band widens the height at which a corner still counts. ``scale``: the pair's
@@ -1053,30 +1114,17 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   out.n = 0
   out.ref_is_b = False
   out.first = -1
+  ref_is_b = faces[0] == 1
   band = a.inflate
   bare = a
   bare.inflate = 0.0
-  n = first.normal
-  fa = _flat_face(bare, ms, n, mode)
-  fb = _flat_face(b, ms, -n, mode)
-  ca = wp.where(fa.kind != FACE_NONE, wp.dot(fa.normal, n), -2.0)
-  cb = wp.where(fb.kind != FACE_NONE, wp.dot(fb.normal, -n), -2.0)
-  if wp.max(ca, cb) < FACE_TOL:
-    return out
-  # a face on a face (MuJoCo's test: the two faces anti-parallel within FACE_TOL): A's is the
-  # reference, as in MuJoCo; else the face along n
-  face_face = ca >= FACE_TOL and cb >= FACE_TOL and wp.dot(fa.normal, fb.normal) <= -FACE_TOL
-  ref_is_b = not (ca >= FACE_TOL and (face_face or ca >= cb))
   ref_shape = bare
   inc_shape = b
-  ref = fa
   if ref_is_b:
     ref_shape = b
     inc_shape = bare
-    ref = fb
-  inc = _incident(inc_shape, ms, -ref.normal, mode)
-  if inc.kind == FACE_NONE or ref.nvert * inc.nvert > FACE_PAIR_BUDGET:
-    return out
+  ref = _face_from_code(ref_shape, ms, faces[1], wp.vec3(0.0))
+  inc = _face_from_code(inc_shape, ms, faces[2], -ref.normal)
   # the reference face's frame: normal m, and two directions across it, from its corner 0 to
   # the corner halfway round and square to that: a box face's diagonals, a round end's 16-gon
   # corners 0, 4, 8, 12 are the extremes along them, clear of ties
@@ -1112,7 +1160,6 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
   if out.n == 0:
     out.status = TILTS
     return out  # nothing within the band: not the face the first contact is on
-  out.ref_is_b = ref_is_b
   # each contact midway between its corner and the corner's foot on the plane
   for k in range(out.n):
     out = _set_pos(out, k, manifold_pos(out, k) - 0.5 * manifold_dist(out, k) * m)
@@ -1124,6 +1171,7 @@ def face_manifold(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResu
     out = _set_dist(out, k, wp.max(manifold_dist(out, k), floor))
     if manifold_dist(out, k) < manifold_dist(out, deepest):
       deepest = k
+  out.ref_is_b = ref_is_b
   out.first = -1
   if manifold_dist(out, deepest) > floor + MISSED_DEPTH * first.depth:
     # the corners miss the first contact (an edge crossing the reference face's rim beside the

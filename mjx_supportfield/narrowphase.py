@@ -29,7 +29,8 @@ from mjx_supportfield.multicontact import TILTS
 from mjx_supportfield.multicontact import TILT_GROWTH
 from mjx_supportfield.multicontact import UNKNOWN
 from mjx_supportfield.multicontact import Patch
-from mjx_supportfield.multicontact import face_manifold
+from mjx_supportfield.multicontact import clip_faces
+from mjx_supportfield.multicontact import face_pair
 from mjx_supportfield.multicontact import keep_first
 from mjx_supportfield.multicontact import manifold_dist
 from mjx_supportfield.multicontact import manifold_pos
@@ -655,6 +656,17 @@ def _queued_patch(
 
 
 @wp.func
+def _queued_first(result: wp.vec4, pos: wp.vec3) -> MprResult:
+  """A queued multi-contact pair's first contact."""
+  res = MprResult()
+  res.hit = 1
+  res.normal = wp.vec3(result[0], result[1], result[2])
+  res.depth = result[3]
+  res.pos = pos
+  return res
+
+
+@wp.func
 def _queued_tilt(
   geom_type: wp.array(dtype=int),
   geom_dataid: wp.array2d(dtype=int),
@@ -689,6 +701,61 @@ def _queued_tilt(
 
 
 @wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+def face_pair_kernel(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  patch_count: wp.array(dtype=int),
+  patch_pair: wp.array(dtype=int),
+  patch_result: wp.array(dtype=wp.vec4),
+  nthread: int,
+  # Out:
+  face_count: wp.array(dtype=int),
+  face_queue: wp.array(dtype=int),
+  face_faces: wp.array(dtype=wp.vec3i),
+  tilt_pair_count: wp.array(dtype=int),
+  tilt_pair: wp.array(dtype=int),
+):
+  """The pairs convex_narrowphase queued for multi-contact, one thread a pair: those touching
+  face on feature along the normal (multicontact.face_pair) are queued, with their faces, for
+  manifold_kernel; the rest (edge on edge, curved surfaces, polygons over budget), by their
+  index in the multi-contact queue, for the tilts (tilt_kernel, tilt_mpr_kernel, patch_kernel).
+  Apart from the clipping, so that the support queries here and the clipping's loops there do
+  not share one kernel's registers, and the clipping runs on dense warps of face pairs."""
+  tid = wp.tid()
+  for i in range(tid, patch_count[0], nthread):
+    cid = patch_pair[i]
+    geoms = pair_in[cid]
+    worldid = pair_worldid_in[cid]
+    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
+    a, b, _ = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
+                         wp.max(margin + gap, 0.0), geoms, worldid)
+    result = patch_result[i]
+    faces = face_pair(a, b, ms, support_mode, wp.vec3(result[0], result[1], result[2]))
+    if faces[0] < 0:
+      tilt_pair[wp.atomic_add(tilt_pair_count, 0, 1)] = i
+    else:
+      slot = wp.atomic_add(face_count, 0, 1)
+      face_queue[slot] = i
+      face_faces[slot] = faces
+
+
+@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
 def manifold_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -719,16 +786,17 @@ def manifold_kernel(
   naconmax_in: int,
   # In:
   ms: MeshSupport,
-  support_mode: int,
   max_contacts: int,
   mc_tolerance: float,
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
-  patch_count: wp.array(dtype=int),
   patch_pair: wp.array(dtype=int),
   patch_result: wp.array(dtype=wp.vec4),
   patch_pos: wp.array(dtype=wp.vec3),
+  face_count: wp.array(dtype=int),
+  face_queue: wp.array(dtype=int),
+  face_faces: wp.array(dtype=wp.vec3i),
   nthread: int,
   # Out:
   tilt_pair_count: wp.array(dtype=int),
@@ -751,13 +819,12 @@ def manifold_kernel(
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
 ):
-  """The pairs convex_narrowphase queued for multi-contact, one thread a pair: where the normal
-  lies along a flat face of one shape, that face clipped against the other shape's facing
-  feature gives the contacts (multicontact.face_manifold); the other pairs (edge on edge,
-  curved surfaces) are queued, by their index in the multi-contact queue, for the tilts
-  (tilt_kernel, tilt_mpr_kernel, patch_kernel)."""
+  """The pairs face_pair_kernel queued for face clipping, one thread a pair: the faces it found
+  clipped (multicontact.clip_faces) give the contacts; a pair whose corners all lie above the
+  band goes on to the tilts after all."""
   tid = wp.tid()
-  for i in range(tid, patch_count[0], nthread):
+  for s in range(tid, face_count[0], nthread):
+    i = face_queue[s]
     cid = patch_pair[i]
     geoms = pair_in[cid]
     worldid = pair_worldid_in[cid]
@@ -770,7 +837,7 @@ def manifold_kernel(
     # duplicates: closer than mc_tolerance x the smaller geom's box size (as patch_kernel's)
     ab = worldid % geom_aabb.shape[0]
     size = 2.0 * wp.min(wp.length(geom_aabb[ab, geoms[0], 1]), wp.length(geom_aabb[ab, geoms[1], 1]))
-    found = face_manifold(a, b, ms, support_mode, res, scale, max_contacts, mc_tolerance * size)
+    found = clip_faces(a, b, ms, res, scale, max_contacts, mc_tolerance * size, face_faces[s])
     if found.status == TILTS:
       tilt_pair[wp.atomic_add(tilt_pair_count, 0, 1)] = i
       continue
@@ -779,6 +846,7 @@ def manifold_kernel(
       geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
       pair_friction, pair_in, pairid_in, cid, worldid,
     )
+    res = _queued_first(patch_result[i], patch_pos[i])  # read again, not held through the clipping
     frame = make_frame(res.normal)
     # the clipped corners lie in the reference shape's frame: its pose read again here, not held
     # through the clipping

@@ -809,60 +809,125 @@ def _set_pos(mf: Manifold, k: int, pos: wp.vec3) -> Manifold:
 
 
 @wp.func
-def _orientation(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, m: wp.vec3) -> float:
-  """+1 where the polygon p0, p1, p2, ... turns counter-clockwise about m, else -1."""
-  return wp.where(wp.dot(wp.cross(p1 - p0, p2 - p1), m) >= 0.0, 1.0, -1.0)
+def _cross2(a: wp.vec2, b: wp.vec2) -> float:
+  return a[0] * b[1] - a[1] * b[0]
 
 
 @wp.func
-def _relative(ref_shape: Shape, inc_shape: Shape):
-  """The incident shape's pose in the reference shape's frame: rotation and shift."""
-  return (wp.transpose(ref_shape.rot) @ inc_shape.rot,
-          wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos))
+def _face_frame(ref_shape: Shape, ref: Face, ms: MeshSupport) -> wp.mat33:
+  """The reference face's frame in its shape's frame, as rows u, v, m: m its outward normal, u
+  from its corner halfway round to its corner 0 (a box face's diagonal, a round end's diameter
+  through its corners 0 and 8), v = m x u. Corners stream in its coordinates (a, b) across the
+  face and z along m; the extremes along u and v are a box face's corners, clear of ties."""
+  m = wp.transpose(ref_shape.rot) @ ref.normal
+  u = _corner(ref_shape, ms, ref, 0) - _corner(ref_shape, ms, ref, ref.nvert // 2)
+  u = wp.normalize(u - wp.dot(u, m) * m)
+  v = wp.cross(m, u)
+  return wp.mat33(u[0], u[1], u[2], v[0], v[1], v[2], m[0], m[1], m[2])
 
 
 @wp.func
-def _rotated_corner(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.vec3, start: int, i: int) -> wp.vec3:
-  """Corner start + i (cyclic) of face f of s, in the frame that rot and shift map it to."""
-  return rot @ _corner(s, ms, f, (start + i) % f.nvert) + shift
+def _ref_corner(ref_shape: Shape, ref: Face, ms: MeshSupport, frame: wp.mat33, k: int) -> wp.vec2:
+  """Corner k of the reference face, across the face (its z is the plane's offset)."""
+  r = frame @ _corner(ref_shape, ms, ref, k)
+  return wp.vec2(r[0], r[1])
 
 
 @wp.func
-def _quad_area(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.vec3, start: int, a: int, b: int, c: int,
-               d: int) -> float:
-  return _area4(_rotated_corner(s, ms, f, rot, shift, start, a), _rotated_corner(s, ms, f, rot, shift, start, b),
-                _rotated_corner(s, ms, f, rot, shift, start, c), _rotated_corner(s, ms, f, rot, shift, start, d))
+def _inc_corner(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3, k: int) -> wp.vec3:
+  """Corner k of the incident face in the reference face's frame (a, b, z)."""
+  return to_face @ _corner(inc_shape, ms, inc, k) + shift
 
 
 @wp.func
-def _polygon_quad(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.vec3, start: int) -> wp.vec4i:
-  """collision_gjk._polygon_quad on face f of s read in place, from its corner ``start`` on: the
-  corners (counted from start) of a quadrilateral of locally largest area. A corner moves on only
-  for QUAD_TIE more area: on a round end (equal quadrilaterals) float32 rounding chose another
-  one every step, and a cylinder resting on its end crept."""
-  n = f.nvert
+def _clip_segment(ref_shape: Shape, ref: Face, ms: MeshSupport, frame: wp.mat33, wr: float, p: wp.vec2,
+                  q: wp.vec2, slack: float) -> wp.vec2:
+  """Cyrus-Beck: the piece [t0, t1] of segment p + t (q - p), t in [0, 1], across the reference
+  face within its side planes (t0 > t1: none). A segment leaves a convex polygon's prism as one
+  piece. wr: +1 where the face's corners turn counter-clockwise about its normal, else -1; a
+  point on a side plane counts up to ``slack``."""
+  d = q - p
+  t0 = float(0.0)
+  t1 = float(1.0)
+  a = _ref_corner(ref_shape, ref, ms, frame, ref.nvert - 1)
+  for k in range(ref.nvert):
+    b = _ref_corner(ref_shape, ref, ms, frame, k)
+    e = b - a
+    inward = wr * wp.vec2(-e[1], e[0])
+    num = wp.dot(p - a, inward) + slack * wp.length(e)
+    den = wp.dot(d, inward)
+    if den > 0.0:
+      t0 = wp.max(t0, -num / den)
+    elif den < 0.0:
+      t1 = wp.min(t1, -num / den)
+    elif num < 0.0:
+      t1 = -1.0
+    a = b
+    if t0 > t1:
+      break
+  return wp.vec2(t0, t1)
+
+
+@wp.func
+def _incident_plane(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3) -> wp.vec4:
+  """The incident polygon's plane in the reference face's frame, from its corners: unit normal
+  (xyz, either way round) and offset (w). Recomputed where needed rather than held."""
+  i0 = _inc_corner(inc_shape, inc, ms, to_face, shift, 0)
+  i1 = _inc_corner(inc_shape, inc, ms, to_face, shift, 1)
+  i2 = _inc_corner(inc_shape, inc, ms, to_face, shift, 2)
+  normal = wp.normalize(wp.cross(i1 - i0, i2 - i1))
+  return wp.vec4(normal[0], normal[1], normal[2], wp.dot(i0, normal))
+
+
+@wp.func
+def _lift(a: float, b: float, plane: wp.vec4) -> wp.vec3:
+  """The point at (a, b) across the reference face on the incident plane (face frame)."""
+  return wp.vec3(a, b, (plane[3] - a * plane[0] - b * plane[1]) / plane[2])
+
+
+@wp.func
+def _quad_area(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3, start: int, a: int,
+               b: int, c: int, d: int) -> float:
+  """_area4 of the incident corners start + a, ... (cyclic) seen along the reference normal: on
+  a plane, the area over the plane's cosine, so the same quadrilaterals win as in MuJoCo."""
+  n = inc.nvert
+  pa = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + a) % n)
+  pb = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + b) % n)
+  pc = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + c) % n)
+  pd = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + d) % n)
+  return 0.5 * wp.abs(_cross2(wp.vec2(pa[0] - pc[0], pa[1] - pc[1]), wp.vec2(pb[0] - pd[0], pb[1] - pd[1])))
+
+
+@wp.func
+def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3, start: int
+                  ) -> wp.vec4i:
+  """collision_gjk._polygon_quad on the incident face read in place, from its corner ``start``
+  on: the corners (counted from start) of a quadrilateral of locally largest area. A corner
+  moves on only for QUAD_TIE more area: on a round end (equal quadrilaterals) float32 rounding
+  chose another one every step, and a cylinder resting on its end crept."""
+  n = inc.nvert
   b = int(1)
   c = int(2)
   d = int(3)
   res = wp.vec4i(0, b, c, d)
-  m = _quad_area(s, ms, f, rot, shift, start, 0, b, c, d)
+  m = _quad_area(inc_shape, inc, ms, to_face, shift, start, 0, b, c, d)
   for a in range(n):
     while True:
-      m_next = _quad_area(s, ms, f, rot, shift, start, a, b, c, (d + 1) % n)
+      m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, b, c, (d + 1) % n)
       if m_next <= m * (1.0 + QUAD_TIE):
         break
       m = m_next
       d = (d + 1) % n
       res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _quad_area(s, ms, f, rot, shift, start, a, b, (c + 1) % n, d)
+        m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, b, (c + 1) % n, d)
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
         c = (c + 1) % n
         res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _quad_area(s, ms, f, rot, shift, start, a, (b + 1) % n, c, d)
+        m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, (b + 1) % n, c, d)
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
@@ -878,66 +943,23 @@ def _polygon_quad(s: Shape, ms: MeshSupport, f: Face, rot: wp.mat33, shift: wp.v
 
 
 @wp.func
-def _clip_segment(ref_shape: Shape, ref: Face, ms: MeshSupport, m: wp.vec3, wr: float, p: wp.vec3, q: wp.vec3,
-                  slack: float) -> wp.vec2:
-  """Cyrus-Beck: the piece [t0, t1] of segment p + t (q - p), t in [0, 1], within the side
-  planes of the reference face (t0 > t1: none). A segment leaves a convex polygon's prism as one
-  piece. wr: +1 where the face's corners turn counter-clockwise about its normal m, else -1; a
-  point on a side plane counts up to ``slack``."""
-  d = q - p
-  t0 = float(0.0)
-  t1 = float(1.0)
-  a = _corner(ref_shape, ms, ref, ref.nvert - 1)
-  for k in range(ref.nvert):
-    b = _corner(ref_shape, ms, ref, k)
-    inward = wr * wp.cross(m, b - a)
-    num = wp.dot(p - a, inward) + slack * wp.length(b - a)
-    den = wp.dot(d, inward)
-    if den > 0.0:
-      t0 = wp.max(t0, -num / den)
-    elif den < 0.0:
-      t1 = wp.min(t1, -num / den)
-    elif num < 0.0:
-      t1 = -1.0
-    a = b
-    if t0 > t1:
-      break
-  return wp.vec2(t0, t1)
-
-
-@wp.func
-def _incident_plane(inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33, shift: wp.vec3) -> wp.vec4:
-  """The incident polygon's plane in the reference shape's frame, from its corners: unit normal
-  (xyz, either way round) and offset (w). Recomputed where needed rather than held."""
-  i0 = rot @ _corner(inc_shape, ms, inc, 0) + shift
-  i1 = rot @ _corner(inc_shape, ms, inc, 1) + shift
-  i2 = rot @ _corner(inc_shape, ms, inc, 2) + shift
-  normal = wp.normalize(wp.cross(i1 - i0, i2 - i1))
-  return wp.vec4(normal[0], normal[1], normal[2], wp.dot(i0, normal))
-
-
-@wp.func
-def _lift(a: float, b: float, u: wp.vec3, v: wp.vec3, m: wp.vec3, plane: wp.vec4) -> wp.vec3:
-  """The point at (a, b) across the reference face on the incident plane."""
-  normal = wp.vec3(plane[0], plane[1], plane[2])
-  return a * u + b * v + (plane[3] - a * wp.dot(u, normal) - b * wp.dot(v, normal)) / wp.dot(m, normal) * m
-
-
-@wp.func
-def _stream_polygon(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33,
-                    shift: wp.vec3, m: wp.vec3, u: wp.vec3, v: wp.vec3, plane_offset: float, band: float,
-                    spacing: float, slack: float) -> Picks:
+def _stream_polygon(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, frame: wp.mat33,
+                    to_face: wp.mat33, shift: wp.vec3, plane_offset: float, band: float, spacing: float,
+                    slack: float) -> Picks:
   """The corners of the incident polygon clipped to the reference face's side planes, streamed
-  into Picks, all in the reference shape's frame (reference plane: dot(x, m) = plane_offset;
-  rot, shift: the incident shape's pose in that frame): each incident edge clipped on its own
-  (_clip_segment), its piece's ends; and each reference corner inside the incident polygon seen
-  along m, lifted onto the incident plane."""
-  wr = _orientation(_corner(ref_shape, ms, ref, 0), _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
+  into Picks, in the reference face's frame (_face_frame: ``frame`` from the reference shape's
+  frame, to_face and shift from the incident shape's; the reference plane at z =
+  plane_offset): each incident edge clipped on its own (_clip_segment), its piece's ends; and
+  each reference corner inside the incident polygon seen along the normal, lifted onto the
+  incident plane."""
+  r0 = _ref_corner(ref_shape, ref, ms, frame, 0)
+  wr = wp.where(_cross2(_ref_corner(ref_shape, ref, ms, frame, 1) - r0,
+                        _ref_corner(ref_shape, ref, ms, frame, 2) - r0) >= 0.0, 1.0, -1.0)
   picks = _new_picks()
-  p = rot @ _corner(inc_shape, ms, inc, inc.nvert - 1) + shift
+  p = _inc_corner(inc_shape, inc, ms, to_face, shift, inc.nvert - 1)
   for e in range(inc.nvert):
-    q = rot @ _corner(inc_shape, ms, inc, e) + shift
-    t = _clip_segment(ref_shape, ref, ms, m, wr, p, q, slack)
+    q = _inc_corner(inc_shape, inc, ms, to_face, shift, e)
+    t = _clip_segment(ref_shape, ref, ms, frame, wr, wp.vec2(p[0], p[1]), wp.vec2(q[0], q[1]), slack)
     if t[0] > 0.0 or t[1] < 1.0:
       picks.whole = False
     if t[0] <= t[1]:
@@ -945,38 +967,41 @@ def _stream_polygon(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms
       # that is inside) and where it ends or leaves
       if t[0] > 0.0:
         x = p + t[0] * (q - p)
-        picks = _pick(picks, wp.dot(x, u), wp.dot(x, v), wp.dot(x, m) - plane_offset, band, spacing)
+        picks = _pick(picks, x[0], x[1], x[2] - plane_offset, band, spacing)
       x = wp.where(t[1] >= 1.0, q, p + t[1] * (q - p))
-      picks = _pick(picks, wp.dot(x, u), wp.dot(x, v), wp.dot(x, m) - plane_offset, band, spacing)
+      picks = _pick(picks, x[0], x[1], x[2] - plane_offset, band, spacing)
     p = q
-  plane = _incident_plane(inc_shape, inc, ms, rot, shift)
-  normal = wp.vec3(plane[0], plane[1], plane[2])
-  cos = wp.dot(normal, m)
-  wi = wp.where(cos >= 0.0, 1.0, -1.0)
+  plane = _incident_plane(inc_shape, inc, ms, to_face, shift)
+  i0 = _inc_corner(inc_shape, inc, ms, to_face, shift, 0)
+  i1 = _inc_corner(inc_shape, inc, ms, to_face, shift, 1)
+  i2 = _inc_corner(inc_shape, inc, ms, to_face, shift, 2)
+  wi = wp.where(_cross2(wp.vec2(i1[0] - i0[0], i1[1] - i0[1]), wp.vec2(i2[0] - i1[0], i2[1] - i1[1])) >= 0.0,
+                1.0, -1.0)
   for k in range(ref.nvert):
-    r = _corner(ref_shape, ms, ref, k)
+    r = _ref_corner(ref_shape, ref, ms, frame, k)
     inside = bool(True)
-    a = rot @ _corner(inc_shape, ms, inc, inc.nvert - 1) + shift
+    a3 = _inc_corner(inc_shape, inc, ms, to_face, shift, inc.nvert - 1)
+    a = wp.vec2(a3[0], a3[1])
     for j in range(inc.nvert):
-      b = rot @ _corner(inc_shape, ms, inc, j) + shift
-      if wi * wp.dot(wp.cross(b - a, r - a), m) < -slack * wp.length(b - a):
+      b3 = _inc_corner(inc_shape, inc, ms, to_face, shift, j)
+      b = wp.vec2(b3[0], b3[1])
+      if wi * _cross2(b - a, r - a) < -slack * wp.length(b - a):
         inside = False
         break
       a = b
     if inside:
       picks.whole = False
-      h = (plane[3] - wp.dot(r, normal)) / cos
-      picks = _pick(picks, wp.dot(r, u), wp.dot(r, v), h + wp.dot(r, m) - plane_offset, band, spacing)
+      picks = _pick(picks, r[0], r[1], _lift(r[0], r[1], plane)[2] - plane_offset, band, spacing)
   return picks
 
 
 @wp.func
-def _chosen(picks: Picks, u: wp.vec3, v: wp.vec3, m: wp.vec3, plane_offset: float, plane: wp.vec4, spacing: float,
-            max_contacts: int, depth_margin: float) -> Manifold:
+def _chosen(picks: Picks, plane_offset: float, plane: wp.vec4, spacing: float, max_contacts: int,
+            depth_margin: float) -> Manifold:
   """Which streamed corners become contacts: all when there are no more than max_contacts
   (distinct); else the deepest (where clearly deepest, DEEPEST_MARGIN) and the extremes along u
-  and v, both ways, in that order, repeats dropped. Corners lifted onto the incident plane
-  (plane), heights over the reference plane (dot(x, m) = plane_offset) in dist."""
+  and v, both ways, in that order, repeats dropped. Corners lifted onto the incident plane,
+  heights over the reference plane (z = plane_offset) in dist, all in the face frame."""
   mf = Manifold()
   mf.status = CLIPPED
   mf.n = 0
@@ -988,49 +1013,46 @@ def _chosen(picks: Picks, u: wp.vec3, v: wp.vec3, m: wp.vec3, plane_offset: floa
         k == 3, picks.a3, picks.a4))))
       b = wp.where(k == 0, picks.b0, wp.where(k == 1, picks.b1, wp.where(k == 2, picks.b2, wp.where(
         k == 3, picks.b3, picks.b4))))
-      x = _lift(a, b, u, v, m, plane)
-      mf = _put(mf, x, wp.dot(x, m) - plane_offset, 0.0, picks.n)
+      x = _lift(a, b, plane)
+      mf = _put(mf, x, x[2] - plane_offset, 0.0, picks.n)
     return mf
-  x0 = _lift(picks.e0a, picks.e0b, u, v, m, plane)
-  x1 = _lift(picks.e1a, picks.e1b, u, v, m, plane)
-  x2 = _lift(picks.e2a, picks.e2b, u, v, m, plane)
-  x3 = _lift(picks.e3a, picks.e3b, u, v, m, plane)
-  h0 = wp.dot(x0, m) - plane_offset
-  h1 = wp.dot(x1, m) - plane_offset
-  h2 = wp.dot(x2, m) - plane_offset
-  h3 = wp.dot(x3, m) - plane_offset
-  if picks.deep_h < wp.min(wp.min(h0, h1), wp.min(h2, h3)) - depth_margin:
-    x = _lift(picks.deep_a, picks.deep_b, u, v, m, plane)
-    mf = _put(mf, x, wp.dot(x, m) - plane_offset, spacing, max_contacts)
-  mf = _put(mf, x0, h0, spacing, max_contacts)
-  mf = _put(mf, x1, h1, spacing, max_contacts)
-  mf = _put(mf, x2, h2, spacing, max_contacts)
-  mf = _put(mf, x3, h3, spacing, max_contacts)
+  x0 = _lift(picks.e0a, picks.e0b, plane)
+  x1 = _lift(picks.e1a, picks.e1b, plane)
+  x2 = _lift(picks.e2a, picks.e2b, plane)
+  x3 = _lift(picks.e3a, picks.e3b, plane)
+  if picks.deep_h < wp.min(wp.min(x0[2], x1[2]), wp.min(x2[2], x3[2])) - plane_offset - depth_margin:
+    x = _lift(picks.deep_a, picks.deep_b, plane)
+    mf = _put(mf, x, x[2] - plane_offset, spacing, max_contacts)
+  mf = _put(mf, x0, x0[2] - plane_offset, spacing, max_contacts)
+  mf = _put(mf, x1, x1[2] - plane_offset, spacing, max_contacts)
+  mf = _put(mf, x2, x2[2] - plane_offset, spacing, max_contacts)
+  mf = _put(mf, x3, x3[2] - plane_offset, spacing, max_contacts)
   return mf
 
 
 @wp.func
-def _segment_manifold(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, rot: wp.mat33,
-                      shift: wp.vec3, m: wp.vec3, plane_offset: float, band: float, spacing: float,
-                      slack: float) -> Manifold:
+def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, frame: wp.mat33, to_face: wp.mat33,
+                      shift: wp.vec3, plane_offset: float, band: float, spacing: float, slack: float) -> Manifold:
   """A line (a cylinder's side, a capsule's) on the reference face: the ends of its piece within
-  the side planes, those within the band."""
+  the side planes, those within the band (face frame)."""
   mf = Manifold()
   mf.status = CLIPPED
   mf.n = 0
   mf.ref_is_b = False
   mf.first = -1
-  wr = _orientation(_corner(ref_shape, ms, ref, 0), _corner(ref_shape, ms, ref, 1), _corner(ref_shape, ms, ref, 2), m)
-  p = rot @ inc.p0 + shift
-  q = rot @ inc.p1 + shift
-  t = _clip_segment(ref_shape, ref, ms, m, wr, p, q, slack)
+  r0 = _ref_corner(ref_shape, ref, ms, frame, 0)
+  wr = wp.where(_cross2(_ref_corner(ref_shape, ref, ms, frame, 1) - r0,
+                        _ref_corner(ref_shape, ref, ms, frame, 2) - r0) >= 0.0, 1.0, -1.0)
+  p = to_face @ inc.p0 + shift
+  q = to_face @ inc.p1 + shift
+  t = _clip_segment(ref_shape, ref, ms, frame, wr, wp.vec2(p[0], p[1]), wp.vec2(q[0], q[1]), slack)
   if t[0] <= t[1]:
     x = p + t[0] * (q - p)
-    if wp.dot(x, m) - plane_offset <= band:
-      mf = _put(mf, x, wp.dot(x, m) - plane_offset, spacing, 2)
+    if x[2] - plane_offset <= band:
+      mf = _put(mf, x, x[2] - plane_offset, spacing, 2)
     x = p + t[1] * (q - p)
-    if wp.dot(x, m) - plane_offset <= band:
-      mf = _put(mf, x, wp.dot(x, m) - plane_offset, spacing, 2)
+    if x[2] - plane_offset <= band:
+      mf = _put(mf, x, x[2] - plane_offset, spacing, 2)
   return mf
 
 
@@ -1125,44 +1147,43 @@ def clip_faces(a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: flo
     inc_shape = bare
   ref = _face_from_code(ref_shape, ms, faces[1], wp.vec3(0.0))
   inc = _face_from_code(inc_shape, ms, faces[2], -ref.normal)
-  # the reference face's frame: normal m, and two directions across it, from its corner 0 to
-  # the corner halfway round and square to that: a box face's diagonals, a round end's 16-gon
-  # corners 0, 4, 8, 12 are the extremes along them, clear of ties
-  m = wp.transpose(ref_shape.rot) @ ref.normal
-  u = _corner(ref_shape, ms, ref, 0) - _corner(ref_shape, ms, ref, ref.nvert // 2)
-  u = wp.normalize(u - wp.dot(u, m) * m)
-  v = wp.cross(m, u)
-  rot, shift = _relative(ref_shape, inc_shape)
-  plane_offset = wp.dot(_corner(ref_shape, ms, ref, 0), m)
+  # everything in the reference face's frame (_face_frame): the reference corners across it,
+  # the incident corners with their height
+  frame = _face_frame(ref_shape, ref, ms)
+  to_face = frame @ (wp.transpose(ref_shape.rot) @ inc_shape.rot)
+  shift = frame @ (wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos))
+  plane_offset = (frame @ _corner(ref_shape, ms, ref, 0))[2]
   max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
   if inc.kind == FACE_SEGMENT:
-    out = _segment_manifold(ref_shape, ref, inc_shape, inc, ms, rot, shift, m, plane_offset, band, spacing,
+    out = _segment_manifold(ref_shape, ref, inc, ms, frame, to_face, shift, plane_offset, band, spacing,
                             ON_FACE_TOL * scale)
   else:
-    plane = _incident_plane(inc_shape, inc, ms, rot, shift)
-    if wp.abs(wp.dot(wp.vec3(plane[0], plane[1], plane[2]), m)) < 1.0e-3:
+    if wp.abs(_incident_plane(inc_shape, inc, ms, to_face, shift)[2]) < 1.0e-3:
       return out  # the incident face stands on edge: no polygon to clip
-    picks = _stream_polygon(ref_shape, ref, inc_shape, inc, ms, rot, shift, m, u, v, plane_offset, band, spacing,
+    picks = _stream_polygon(ref_shape, ref, inc_shape, inc, ms, frame, to_face, shift, plane_offset, band, spacing,
                             ON_FACE_TOL * scale)
     if picks.whole and picks.n > max_contacts and max_contacts >= 4:
       # the incident polygon lies on the reference face uncut: MuJoCo's clipped polygon is that
       # polygon, each of the reference face's side planes having moved its start on by one
       # corner, and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
       start = ref.nvert % inc.nvert
-      quad = _polygon_quad(inc_shape, ms, inc, rot, shift, start)
+      quad = _polygon_quad(inc_shape, inc, ms, to_face, shift, start)
       out.status = CLIPPED
       for k in range(4):
-        x = _rotated_corner(inc_shape, ms, inc, rot, shift, start, quad[k])
-        out = _put(out, x, wp.dot(x, m) - plane_offset, 0.0, 4)
+        x = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + quad[k]) % inc.nvert)
+        out = _put(out, x, x[2] - plane_offset, 0.0, 4)
     else:
-      out = _chosen(picks, u, v, m, plane_offset, _incident_plane(inc_shape, inc, ms, rot, shift), spacing,
-                    max_contacts, DEEPEST_MARGIN * first.depth)
+      out = _chosen(picks, plane_offset, _incident_plane(inc_shape, inc, ms, to_face, shift), spacing, max_contacts,
+                    DEEPEST_MARGIN * first.depth)
   if out.n == 0:
     out.status = TILTS
     return out  # nothing within the band: not the face the first contact is on
-  # each contact midway between its corner and the corner's foot on the plane
+  # each contact midway between its corner and the corner's foot on the plane, in the reference
+  # shape's frame
+  frame = _face_frame(ref_shape, ref, ms)
   for k in range(out.n):
-    out = _set_pos(out, k, manifold_pos(out, k) - 0.5 * manifold_dist(out, k) * m)
+    x = manifold_pos(out, k)
+    out = _set_pos(out, k, wp.transpose(frame) @ wp.vec3(x[0], x[1], x[2] - 0.5 * manifold_dist(out, k)))
   # no corner deeper than the first contact; the deepest corner carries its depth (exact where
   # the corners' is not: a round end's deepest point lies between two corners of its 16-gon)
   floor = band - first.depth

@@ -629,7 +629,7 @@ def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
     # MuJoCo's 16-gon (collision_gjk._cylinder_face): its corners are where MuJoCo C's contacts lie
     sign = wp.where(f.index != 0, -1.0, 1.0)
     return wp.vec3(s.size[0] * _disk_cos(k), -sign * s.size[0] * _disk_cos(k + 12), sign * s.size[1])
-  return wp.where(k == 0, f.p0, f.p1)
+  return wp.vec3(0.0)  # a segment: _segment_manifold reads its ends itself
 
 
 @wp.func
@@ -814,12 +814,22 @@ def _cross2(a: wp.vec2, b: wp.vec2) -> float:
 
 
 @wp.func
+def _local_normal(ms: MeshSupport, f: Face) -> wp.vec3:
+  """The outward normal of face f (not a segment) in its shape's frame."""
+  if f.kind == FACE_BOX:
+    return _along_axis(f.index // 2, wp.where(f.index % 2 == 0, 1.0, -1.0))
+  if f.kind == FACE_DISK:
+    return wp.vec3(0.0, 0.0, wp.where(f.index == 0, 1.0, -1.0))
+  return ms.poly_normal[f.index]
+
+
+@wp.func
 def _face_frame(ref_shape: Shape, ref: Face, ms: MeshSupport) -> wp.mat33:
   """The reference face's frame in its shape's frame, as rows u, v, m: m its outward normal, u
   from its corner halfway round to its corner 0 (a box face's diagonal, a round end's diameter
   through its corners 0 and 8), v = m x u. Corners stream in its coordinates (a, b) across the
   face and z along m; the extremes along u and v are a box face's corners, clear of ties."""
-  m = wp.transpose(ref_shape.rot) @ ref.normal
+  m = _local_normal(ms, ref)
   u = _corner(ref_shape, ms, ref, 0) - _corner(ref_shape, ms, ref, ref.nvert // 2)
   u = wp.normalize(u - wp.dot(u, m) * m)
   v = wp.cross(m, u)
@@ -1072,16 +1082,12 @@ def _face_from_code(s: Shape, ms: MeshSupport, code: int, toward: wp.vec3) -> Fa
   f = _no_face()
   f.kind = kind
   f.index = code >> 3
-  local = wp.vec3(0.0)
-  if kind == FACE_BOX:
-    f.nvert = 4
-    local = _along_axis(f.index // 2, wp.where(f.index % 2 == 0, 1.0, -1.0))
-  elif kind == FACE_DISK:
+  f.nvert = 4
+  if kind == FACE_DISK:
     f.nvert = DISK_CORNERS
-    local = wp.vec3(0.0, 0.0, wp.where(f.index == 0, 1.0, -1.0))
   elif kind == FACE_MESH:
     f.nvert = ms.poly_vert_num[f.index]
-    local = ms.poly_normal[f.index]
+  local = _local_normal(ms, f)
   f.normal = s.rot @ local
   return f
 

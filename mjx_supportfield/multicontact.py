@@ -1,12 +1,21 @@
-"""Multi-contact by pose perturbation: more points of a contact patch from the same MPR.
+"""Multi-contact: more points of a contact patch than MPR's (or GJK/EPA's) one.
 
-After MPR's contact (normal n, depth d0, point p0), shape A is tilted by +-eps about the two
-diagonals of the contact plane, around p0. A tilted A digs into B at another end of the
-patch; MPR finds the witness points there, A's is mapped back to A's true pose, and the
-point is kept when it still penetrates along n and is not a duplicate of one already kept.
-A tilt that lands back on a point already found (the faces meet at a larger angle than eps,
-so the same vertex stays deepest) is retried once, TILT_GROWTH times steeper: 0.09 rad at the
-default eps, about the 0.089 rad within which MuJoCo's multi-CCD takes two faces as touching.
+Face clipping first. Where the contact normal n lies along a flat face of one shape (a box
+face, a cylinder's end, a hull polygon of MuJoCo's), that face is the reference and the other
+shape's feature facing it (its face most anti-parallel to the reference face, or the line of a
+cylinder's side or a capsule lying on it) the incident one (face_pair): the incident polygon
+clipped to the reference face's side planes is the patch, and its corners within the margin
+band of the reference plane are the contacts (clip_faces; MuJoCo's multi-CCD does the same from
+EPA's features). The clipped polygon is never built: see the section's notes below.
+
+Pose perturbation for the rest (edge against edge, curved surfaces): after the first contact
+(normal n, depth d0, point p0), shape A is tilted by +-eps about the two diagonals of the
+contact plane, around p0. A tilted A digs into B at another end of the patch; MPR finds the
+witness points there, A's is mapped back to A's true pose, and the point is kept when it still
+penetrates along n and is not a duplicate of one already kept. A tilt that lands back on a
+point already found (the faces meet at a larger angle than eps, so the same vertex stays
+deepest) is retried once, TILT_GROWTH times steeper: 0.09 rad at the default eps, about the
+0.089 rad within which MuJoCo's multi-CCD takes two faces as touching.
 
 Most tilts need no MPR. The tilted MPR looks along n, and the face of A' - B its ray leaves
 through is usually a vertex of one shape against a flat face of the other (a box face, a
@@ -15,7 +24,6 @@ vertex through A''s face that faces B. A face and a support query give each, and
 ray provably leaves through one of them the tilt's answer follows in closed form
 (tilt_closed_form); only the rest (edge against edge, curved sides) run the tilted MPR.
 """
-
 import math
 
 import warp as wp

@@ -525,8 +525,8 @@ def convex_kernel(use_gjk: bool):
   ):
     """Contacts of convex pairs by MPR (or GJK/EPA) on the shapes' support functions: the
     deepest point; a pair that may touch in more points (not spheres and ellipsoids, where one
-    point is the whole contact) is queued for manifold_kernel instead, which writes up to
-    max_contacts. With warm_start, MPR starts from the pair's normal of the previous call and
+    point is the whole contact) is queued for face_pair_kernel instead, and face clipping or the
+    tilts write up to max_contacts. With warm_start, MPR starts from the pair's normal of the previous call and
     falls back to a cold start when that misses."""
     tid = wp.tid()
     now = ws_stamp[0]
@@ -612,7 +612,7 @@ def convex_kernel(use_gjk: bool):
       )
       tilt = mc_perturbation * TILT_GROWTH  # the steepest tilt perturbed_contacts tries
       if max_contacts > 1 and not one_point and extra.n == 0 and patch_possible(a, b, ms, res.normal, tilt, res.depth):
-        # queued for manifold_kernel (face clipping), which leaves the rest to the tilts
+        # queued for face_pair_kernel, which leaves the pairs without a face pair to the tilts
         slot = wp.atomic_add(patch_count, 0, 1)
         patch_pair[slot] = cid
         patch_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
@@ -898,8 +898,8 @@ def tilt_kernel(
   tilt_count: wp.array(dtype=int),
   tilt_queue: wp.array(dtype=int),
 ):
-  """Both attempts of each of the four tilts of the pairs manifold_kernel left to the tilts
-  (row q of tilt_result: the q-th of them), one thread an attempt, in closed form
+  """Both attempts of each of the four tilts of the pairs left to the tilts by face_pair_kernel
+  and manifold_kernel (row q of tilt_result: the q-th of them), one thread an attempt, in closed form
   (multicontact.tilt_closed_form); the attempts it cannot answer are queued for tilt_mpr_kernel,
   so the tilted MPRs run on dense warps. The steeper attempt is computed whether or not
   patch_kernel's replay needs it: on the pile and on aloha_pot 84 % of the first attempts land
@@ -1032,7 +1032,8 @@ def patch_kernel(
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
 ):
-  """The pairs manifold_kernel queued for the tilts: the tilts, then all their contacts.
+  """The pairs left to the tilts (face_pair_kernel, manifold_kernel): the tilts, then all their
+  contacts.
 
   A separate kernel so that warps run only pairs that need the tilts: in the convex kernel one
   such pair held its whole warp (8x the cost on a GPU). The tilts come from tilt_kernel and

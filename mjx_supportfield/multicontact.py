@@ -502,7 +502,6 @@ class Picks:
   at run time lives in local memory on a GPU, and every register held through the streaming
   loops is one the clipping cannot use."""
 
-  count: int
   n: int
   whole: bool  # the incident polygon lies within the side planes and the band, uncut
   a0: float
@@ -643,7 +642,6 @@ def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
 @wp.func
 def _new_picks() -> Picks:
   p = Picks()
-  p.count = 0
   p.n = 0
   p.whole = True
   p.a0 = 0.0
@@ -659,14 +657,15 @@ def _new_picks() -> Picks:
   p.deep_a = 0.0
   p.deep_b = 0.0
   p.deep_h = 1.0e30
-  p.e0a = 0.0
+  # extremes start beyond any corner, so that the first corner takes every slot
+  p.e0a = -1.0e30
   p.e0b = 0.0
-  p.e1a = 0.0
+  p.e1a = 1.0e30
   p.e1b = 0.0
   p.e2a = 0.0
-  p.e2b = 0.0
+  p.e2b = -1.0e30
   p.e3a = 0.0
-  p.e3b = 0.0
+  p.e3b = 1.0e30
   return p
 
 
@@ -689,20 +688,6 @@ def _pick(p: Picks, a: float, b: float, h: float, band: float, spacing: float) -
   if h > band:
     out.whole = False
     return out
-  if p.count == 0:
-    # the first corner fills every slot: later ones must beat it
-    out.deep_a = a
-    out.deep_b = b
-    out.deep_h = h
-    out.e0a = a
-    out.e0b = b
-    out.e1a = a
-    out.e1b = b
-    out.e2a = a
-    out.e2b = b
-    out.e3a = a
-    out.e3b = b
-  out.count = p.count + 1
   seen = ((p.n > 0 and _near2(a, b, p.a0, p.b0, spacing)) or (p.n > 1 and _near2(a, b, p.a1, p.b1, spacing))
           or (p.n > 2 and _near2(a, b, p.a2, p.b2, spacing)) or (p.n > 3 and _near2(a, b, p.a3, p.b3, spacing))
           or (p.n > 4 and _near2(a, b, p.a4, p.b4, spacing)))

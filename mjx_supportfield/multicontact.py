@@ -624,7 +624,7 @@ def _disk_cos(k: int) -> float:
 def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
   """Corner k of face f of s, in the shape's frame, in MuJoCo's order (collision_gjk._box_face,
   _mesh_face, _cylinder_face): clockwise seen from outside. MuJoCo's choice of corners follows
-  from where its clipped polygon starts (face_manifold)."""
+  from where its clipped polygon starts (clip_faces)."""
   if f.kind == FACE_BOX:
     code = (_box_face_code(f.index) >> (3 * k)) & 7
     return wp.vec3(wp.where((code & 1) != 0, s.size[0], -s.size[0]), wp.where((code & 2) != 0, s.size[1], -s.size[1]),

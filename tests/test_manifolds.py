@@ -8,7 +8,7 @@ its GJK/EPA multi-contact path instead, which gives 4 of the overlap polygon's 5
 rotated face-on-face case below; that is why these are compared with MuJoCo C, not with stock.
 
 Mesh-mesh, box-mesh and cylinder-box go through MPR (or GJK/EPA) and face clipping
-(multicontact.face_manifold): the normal lies along a face of one shape, and the other's facing
+(multicontact.face_pair, clip_faces): the normal lies along a face of one shape, and the other's facing
 face, edge or line is clipped to it. A face on a face gets every corner of the overlap polygon
 (up to 5; MuJoCo C's multi-CCD keeps 4 of them), an edge or a cylinder's side the two ends of
 the line, a cylinder's end MuJoCo's quadrilateral of its 16-gon; every point of MuJoCo C's
@@ -413,3 +413,38 @@ def test_tilted_face_sunk_in_a_face_gets_every_sunk_corner(narrowphase):
   far = _covered(c.pos.astype(np.float64), deep)
   assert far.max() < 1e-3, f"MuJoCo C's points {np.round(deep[far >= 1e-3], 4)} uncovered"
   np.testing.assert_allclose(np.sort(c.dist), np.sort([r.dist for r in ref]), atol=5e-5)
+
+
+def _prism_on_box(sides: int, yaw_deg: float) -> str:
+  """A prism of ``sides`` corners round (0.03 m radius, 0.04 m tall) standing on a box's top
+  face, turned by yaw_deg, its bottom 1 mm into the box."""
+  angles = np.arange(sides) * 2.0 * np.pi / sides
+  vertex = " ".join(f"{0.03 * np.cos(t):.6f} {0.03 * np.sin(t):.6f} {z}" for z in (-0.02, 0.02) for t in angles)
+  return f"""
+<mujoco>
+  <asset><mesh name="prism" vertex="{vertex}"/></asset>
+  <worldbody>
+    <geom name="table" type="box" size=".1 .1 .05"/>
+    <body pos="0.01 -0.005 0.069" euler="0 0 {yaw_deg}"><freejoint/><geom name="prism" type="mesh" mesh="prism"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("narrowphase", NARROWPHASES)
+@pytest.mark.parametrize("sides,yaw", [(8, 10.0), (24, 7.0)])
+def test_polygon_end_on_face_gets_mujocos_quadrilateral(narrowphase, sides, yaw):
+  """A polygon end (a can's 24-gon bottom, an octagon) lying whole on a box's face: MuJoCo C's
+  four contacts are the quadrilateral of largest area its climb reaches from where its clipped
+  polygon starts, and the plugin's are the same corners (within 0.05 mm), at the depth. The
+  tilts put points elsewhere on the rim (up to one side of the polygon off)."""
+  sim = load(_prism_on_box(sides, yaw))
+  sf.install(sim.mjm, sim.m, sf.Options(narrowphase=narrowphase))
+  sf.collision(sim.m, sim.d)
+  c = contacts(sim.d, 0)
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  want = np.array([r.pos for r in ref])
+  assert len(want) == 4, f"MuJoCo C now gives {len(want)} contacts"
+  assert c.n == 4, f"{c.n} contacts"
+  _match(c.pos.astype(np.float64), want, 5e-5)
+  np.testing.assert_allclose(c.dist, -0.001, atol=2e-5)

@@ -837,9 +837,9 @@ def _ref_corner(ref_shape: Shape, ref: Face, ms: MeshSupport, frame: wp.mat33, k
 
 
 @wp.func
-def _inc_corner(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3, k: int) -> wp.vec3:
+def _inc_corner(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3, k: int) -> wp.vec3:
   """Corner k of the incident face in the reference face's frame (a, b, z)."""
-  return to_face @ _corner(inc_shape, ms, inc, k) + shift
+  return wp.quat_rotate(to_face, _corner(inc_shape, ms, inc, k)) + shift
 
 
 @wp.func
@@ -872,7 +872,7 @@ def _clip_segment(ref_shape: Shape, ref: Face, ms: MeshSupport, frame: wp.mat33,
 
 
 @wp.func
-def _incident_plane(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3) -> wp.vec4:
+def _incident_plane(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3) -> wp.vec4:
   """The incident polygon's plane in the reference face's frame, from its corners: unit normal
   (xyz, either way round) and offset (w). Recomputed where needed rather than held."""
   i0 = _inc_corner(inc_shape, inc, ms, to_face, shift, 0)
@@ -889,7 +889,7 @@ def _lift(a: float, b: float, plane: wp.vec4) -> wp.vec3:
 
 
 @wp.func
-def _quad_area(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3, start: int, a: int,
+def _quad_area(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3, start: int, a: int,
                b: int, c: int, d: int) -> float:
   """_area4 of the incident corners start + a, ... (cyclic) seen along the reference normal: on
   a plane, the area over the plane's cosine, so the same quadrilaterals win as in MuJoCo."""
@@ -902,7 +902,7 @@ def _quad_area(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, 
 
 
 @wp.func
-def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat33, shift: wp.vec3, start: int
+def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3, start: int
                   ) -> wp.vec4i:
   """collision_gjk._polygon_quad on the incident face read in place, from its corner ``start``
   on: the corners (counted from start) of a quadrilateral of locally largest area. A corner
@@ -947,7 +947,7 @@ def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.mat3
 
 @wp.func
 def _stream_polygon(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms: MeshSupport, frame: wp.mat33,
-                    to_face: wp.mat33, shift: wp.vec3, plane_offset: float, band: float, spacing: float,
+                    to_face: wp.quat, shift: wp.vec3, plane_offset: float, band: float, spacing: float,
                     slack: float) -> Picks:
   """The corners of the incident polygon clipped to the reference face's side planes, streamed
   into Picks, in the reference face's frame (_face_frame: ``frame`` from the reference shape's
@@ -1034,7 +1034,7 @@ def _chosen(picks: Picks, plane_offset: float, plane: wp.vec4, spacing: float, m
 
 
 @wp.func
-def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, frame: wp.mat33, to_face: wp.mat33,
+def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, frame: wp.mat33, to_face: wp.quat,
                       shift: wp.vec3, plane_offset: float, band: float, spacing: float, slack: float) -> Manifold:
   """A line (a cylinder's side, a capsule's) on the reference face: the ends of its piece within
   the side planes, those within the band (face frame)."""
@@ -1046,8 +1046,8 @@ def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, f
   r0 = _ref_corner(ref_shape, ref, ms, frame, 0)
   wr = wp.where(_cross2(_ref_corner(ref_shape, ref, ms, frame, 1) - r0,
                         _ref_corner(ref_shape, ref, ms, frame, 2) - r0) >= 0.0, 1.0, -1.0)
-  p = to_face @ inc.p0 + shift
-  q = to_face @ inc.p1 + shift
+  p = wp.quat_rotate(to_face, inc.p0) + shift
+  q = wp.quat_rotate(to_face, inc.p1) + shift
   t = _clip_segment(ref_shape, ref, ms, frame, wr, wp.vec2(p[0], p[1]), wp.vec2(q[0], q[1]), slack)
   if t[0] <= t[1]:
     x = p + t[0] * (q - p)
@@ -1149,7 +1149,7 @@ def clip_faces(a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: flo
   # everything in the reference face's frame (_face_frame): the reference corners across it,
   # the incident corners with their height
   frame = _face_frame(ref_shape, ref, ms)
-  to_face = frame @ (wp.transpose(ref_shape.rot) @ inc_shape.rot)
+  to_face = wp.quat_from_matrix(frame @ (wp.transpose(ref_shape.rot) @ inc_shape.rot))
   shift = frame @ (wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos))
   plane_offset = (frame @ _corner(ref_shape, ms, ref, 0))[2]
   max_contacts = wp.min(max_contacts, MAX_MANIFOLD)

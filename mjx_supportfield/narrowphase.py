@@ -838,15 +838,21 @@ def manifold_kernel(
     ab = worldid % geom_aabb.shape[0]
     size = 2.0 * wp.min(wp.length(geom_aabb[ab, geoms[0], 1]), wp.length(geom_aabb[ab, geoms[1], 1]))
     found = clip_faces(a, b, ms, res, scale, max_contacts, mc_tolerance * size, face_faces[s])
+    # the pair read again, not held through the clipping
+    i = face_queue[s]
     if found.status == TILTS:
       tilt_pair[wp.atomic_add(tilt_pair_count, 0, 1)] = i
       continue
+    cid = patch_pair[i]
+    geoms = pair_in[cid]
+    worldid = pair_worldid_in[cid]
     _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
       geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
       geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
       pair_friction, pair_in, pairid_in, cid, worldid,
     )
-    res = _queued_first(patch_result[i], patch_pos[i])  # read again, not held through the clipping
+    band = wp.max(margin + gap, 0.0)
+    res = _queued_first(patch_result[i], patch_pos[i])
     frame = make_frame(res.normal)
     # the clipped corners lie in the reference shape's frame: its pose read again here, not held
     # through the clipping

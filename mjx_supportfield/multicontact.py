@@ -418,7 +418,8 @@ def perturbed_contacts(
 
 MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's bound)
 # reference corners x incident corners above which a face pair goes to the tilts: the clipping
-# loops over every pair of them (a box face on a cylinder's end: 4 x 16)
+# loops over every pair of them. A box face on a can's 24-gon bottom (4 x 24) is within it, an
+# aluminium extrusion's 76-gon end is not
 FACE_PAIR_BUDGET = 96
 DISK_CORNERS = 16  # MuJoCo's polygon for a cylinder's end
 

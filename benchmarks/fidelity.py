@@ -51,6 +51,7 @@ import mujoco_warp as mjw  # noqa: E402
 import warp as wp  # noqa: E402
 
 import mjx_supportfield  # noqa: E402
+from mjx_supportfield import exact  # noqa: E402
 from mjx_supportfield.compare import compare_states  # noqa: E402
 from mjx_supportfield.options import Options  # noqa: E402
 
@@ -263,16 +264,40 @@ def squeeze(mjm: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
   return q
 
 
+def penetration(mjm: mujoco.MjModel, mjd: mujoco.MjData, i: int) -> float:
+  """Penetration (m, positive) of MuJoCo C's contact i, held to the exact geometry: -dist, but no
+  more than the exact overlap of the pair's convex shapes along any of a few directions (MuJoCo
+  C's normal, each geom's frame axes, the line between their centres). The true depth is the
+  smallest overlap over all directions, so this never reports less than it; it keeps a wrong
+  normal of MuJoCo C's (a sideways answer on a thin disk, say) from passing as a deep overlap."""
+  depth = -float(mjd.contact.dist[i])
+  g1, g2 = (int(g) for g in mjd.contact.geom[i])
+  xpos, xmat = mjd.geom_xpos, mjd.geom_xmat.reshape(-1, 3, 3)
+  centres = xpos[g2] - xpos[g1]
+  directions = [mjd.contact.frame[i][:3], *xmat[g1].T, *xmat[g2].T]
+  if np.linalg.norm(centres) > 0.0:
+    directions.append(centres)
+  try:
+    for n in directions:
+      depth = min(depth, exact.overlap_along(mjm, g1, g2, xpos, xmat, n),
+                  exact.overlap_along(mjm, g1, g2, xpos, xmat, -np.asarray(n)))
+  except exact.NotConvexError:  # a heightfield: MuJoCo C's own depth
+    pass
+  return depth
+
+
 def deepest_penetration(mjm: mujoco.MjModel, mjd: mujoco.MjData, qpos: np.ndarray) -> tuple[float, str]:
-  """MuJoCo C's deepest contact (m, positive = penetration) at qpos, and its geom pair."""
+  """MuJoCo C's deepest contact (m, positive = penetration; held to the exact geometry, see
+  penetration) at qpos, and its geom pair."""
   mjd.qpos[:] = qpos
   mujoco.mj_fwdPosition(mjm, mjd)
   if not mjd.ncon:
     return 0.0, ""
-  i = int(np.argmin(mjd.contact.dist[: mjd.ncon]))
+  depths = [penetration(mjm, mjd, i) for i in range(mjd.ncon)]
+  i = int(np.argmax(depths))
   g1, g2 = mjd.contact.geom[i]
   pair = f"{mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g1)}-{mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g2)}"
-  return max(0.0, -float(mjd.contact.dist[i])), pair
+  return max(0.0, depths[i]), pair
 
 
 def _static_geoms(mjm: mujoco.MjModel) -> list[int]:

@@ -380,6 +380,78 @@ def test_pair_overflow_in_one_world_leaves_the_others_bitwise_unchanged():
 
 
 
+def test_contact_overflow_in_one_world_leaves_the_others_bitwise_unchanged():
+  """Options.contacts_per_world: world 0 has all six hulls piled into one spot and finds more
+  contacts than its rows; world 1, at rest, keeps bitwise the contacts it has beside a clean
+  world (with the shared buffer the pile's writers, first on the CPU, took world 1's rows), the
+  pile keeps exactly its rows, and its overflow is flagged and counted in its world only."""
+  sim = load("convex_pile", nworld=2)
+  mjm, m = sim.mjm, sim.m
+  resting = perturbed_pile_qpos(mjm, 0)[0]
+  piled = resting.copy()
+  for i in range(6):
+    piled[free_qpos_adr(mjm, f"mesh{i}") : free_qpos_adr(mjm, f"mesh{i}") + 3] = (0.0, 0.0, 0.3 + 0.01 * i)
+  quiet_overflow(m)
+
+  def run(options, first, naconmax=None):
+    collider = sf.install(mjm, m, options)
+    d = mjw.put_data(mjm, sim.mjd, nworld=2, naconmax=naconmax)
+    d.qpos.assign(np.stack([first, resting]).astype(np.float32))
+    mjw.kinematics(m, d)
+    sf.collision(m, d)
+    out = collider.stats(d), d.overflow.numpy().copy(), [sorted_rows(world_contact_fields(d, w)) for w in (0, 1)]
+    sf.uninstall(m)
+    return out
+
+  with bitwise_repeatable(m):
+    _, _, (found, rest) = run(sf.Options(), piled)
+    quota = rest["dist"].size  # world 1's contacts fit, world 0's do not
+    assert found["dist"].size > quota > 0
+    options = sf.Options(contacts_per_world=quota)
+    clean_stats, clean_overflow, (_, clean) = run(options, resting, naconmax=2 * quota)
+    stats, overflow, (pile, isolated) = run(options, piled, naconmax=2 * quota)
+  assert clean_stats["dropped_contacts_per_world"] == [0, 0] and not clean_overflow.any()
+  assert stats["dropped_contacts_per_world"] == [found["dist"].size - quota, 0]
+  assert stats["dropped_contacts"] == found["dist"].size - quota
+  assert overflow[0] & int(OverflowType.NARROWPHASE) and not overflow[1] & int(OverflowType.NARROWPHASE)
+  assert pile["dist"].size == quota
+  for f in clean:
+    assert np.array_equal(isolated[f], clean[f]), f
+    assert np.array_equal(isolated[f], rest[f]), f
+
+
+def test_contacts_per_world_beyond_naconmax_raises(pile):
+  """nworld x contacts_per_world rows must fit in naconmax: one clear error at the first collision."""
+  sf.uninstall(pile.m)
+  try:
+    sf.install(pile.mjm, pile.m, sf.Options(contacts_per_world=10))
+    d = mjw.make_data(pile.mjm, nworld=NWORLD, naconmax=10 * NWORLD - 1)
+    with pytest.raises(ValueError, match=rf"contacts_per_world = 10 .*{NWORLD} worlds.*naconmax = {10 * NWORLD - 1}"):
+      sf.collision(pile.m, d)
+  finally:
+    sf.uninstall(pile.m)
+    sf.install(pile.mjm, pile.m)
+
+
+def test_contacts_per_world_refuses_sleeping(pile):
+  """A sleeping step's second pass appends to the first pass's contacts, which the quota packs:
+  install refuses the combination, and so does a collision after sleeping was enabled."""
+  mjm = sleep_model(True, 1e-2)
+  with pytest.raises(ValueError, match="contacts_per_world does not work with sleeping"):
+    sf.install(mjm, mjw.put_model(mjm), sf.Options(contacts_per_world=8))
+  sf.uninstall(pile.m)
+  saved = pile.m.opt.enableflags
+  try:
+    sf.install(pile.mjm, pile.m, sf.Options(contacts_per_world=8))
+    pile.m.opt.enableflags = saved | int(mjw.EnableBit.SLEEP)
+    with pytest.raises(ValueError, match="contacts_per_world does not work with sleeping"):
+      sf.collision(pile.m, mjw.make_data(pile.mjm, nworld=NWORLD))
+  finally:
+    pile.m.opt.enableflags = saved
+    sf.uninstall(pile.m)
+    sf.install(pile.mjm, pile.m)
+
+
 # --- 3. overflow ----------------------------------------------------------------------------------
 
 CANARY = {float: 1234.5, int: -777}

@@ -189,15 +189,22 @@ def _kept_per_world(
   overflow[worldid] = overflow[worldid] | int(OverflowType.NARROWPHASE)
   if warn:
     if wp.atomic_add(nwarned, 0, 1) == 0:
-      wp.printf(
-        "mjx_supportfield: narrowphase overflow - world %d found %d contacts for its %d rows (Options.contacts_per_world)"
-        " and MuJoCo Warp's own routines %d beyond naconmax\n"
-        "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.NARROWPHASE (or = 0 for all)\n",
-        worldid,
-        found,
-        per_world,
-        stock,
-      )
+      if found > per_world:
+        wp.printf(
+          "mjx_supportfield: narrowphase overflow - %d contacts in world %d; raise Options.contacts_per_world beyond %d\n"
+          "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.NARROWPHASE (or = 0 for all)\n",
+          found,
+          worldid,
+          per_world,
+        )
+      else:
+        wp.printf(
+          "mjx_supportfield: narrowphase overflow - MuJoCo Warp's own routines found %d contacts beyond naconmax %d"
+          " (the rows after nworld x Options.contacts_per_world)\n"
+          "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.NARROWPHASE (or = 0 for all)\n",
+          stock,
+          naconmax,
+        )
 
 
 @wp.kernel(enable_backward=False)

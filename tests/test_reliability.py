@@ -25,8 +25,10 @@ from conftest import angle_deg
 from conftest import contact_table
 from conftest import contacts
 from conftest import load
+from conftest import load_mjmodel
 from conftest import mjc_contact_table
 from mjx_supportfield import contact_sort
+from mjx_supportfield.bench import settled_state
 from mjx_supportfield.cli import main as cli_main
 
 NWORLD = 3
@@ -418,6 +420,44 @@ def test_contact_overflow_in_one_world_leaves_the_others_bitwise_unchanged():
   for f in clean:
     assert np.array_equal(isolated[f], clean[f]), f
     assert np.array_equal(isolated[f], rest[f]), f
+
+
+SENSOR_SCENE = """<mujoco><worldbody><geom name="floor" type="plane" size="1 1 .1"/>
+  <body pos="0 0 .09"><freejoint/><geom name="box" type="box" size=".1 .1 .1"/></body>
+  <body pos=".5 0 .2"><freejoint/><geom name="ball" type="sphere" size=".1"/></body></worldbody>
+  <sensor><distance geom1="box" geom2="floor" cutoff="1"/></sensor></mujoco>"""
+
+
+@pytest.mark.parametrize("scene", ["terrain", "nonconvex", "sensor"])
+def test_contacts_per_world_with_room_keeps_every_contact(scene):
+  """With room for every world, the world rows give each world the contacts of the shared buffer,
+  from every writer: heightfield and non-convex candidates, MuJoCo Warp's analytic routines, and
+  its own narrow phase for a collision sensor's pair, which writes after the world rows."""
+  mjm = load_mjmodel(SENSOR_SCENE if scene == "sensor" else scene)
+  sim = load(None, nworld=2, mjm=mjm)
+  m = sim.m
+  qpos = np.tile(settled_state(mjm, 500).qpos, (2, 1))
+  qpos[1, 2] -= 0.01  # the worlds differ: the first free body sinks in world 1
+  naconmax = 256
+
+  def run(options):
+    collider = sf.install(mjm, m, options)
+    d = mjw.put_data(mjm, sim.mjd, nworld=2, naconmax=naconmax)
+    d.qpos.assign(qpos.astype(np.float32))
+    mjw.kinematics(m, d)
+    sf.collision(m, d)
+    out = collider.stats(d), int(d.nacon.numpy()[0]), [sorted_rows(world_contact_fields(d, w)) for w in (0, 1)]
+    sf.uninstall(m)
+    return out
+
+  with bitwise_repeatable(m):
+    _, nacon, shared = run(sf.Options())
+    stats, packed, rows = run(sf.Options(contacts_per_world=naconmax // 4))  # half the rows stay shared
+  assert nacon < naconmax and shared[0]["dist"].size > 0 and shared[1]["dist"].size > 0
+  assert packed == nacon and stats["dropped_contacts"] == 0
+  for w in (0, 1):
+    for f in shared[w]:
+      assert np.array_equal(rows[w][f], shared[w][f]), (w, f)
 
 
 def test_contacts_per_world_beyond_naconmax_raises(pile):

@@ -724,10 +724,13 @@ def interleave(keys: np.ndarray, rng) -> np.ndarray:
   return out
 
 
-def test_graph_capture_deterministic_contacts():
+@pytest.mark.parametrize("contacts_per_world", [0, 64])
+def test_graph_capture_deterministic_contacts(contacts_per_world):
   """With all of MuJoCo Warp's determinism bits: the same states in give bitwise the same
   contacts, in the same order, uncaptured and replayed from a graph (a CUDA graph on a GPU,
-  Warp's CPU graph otherwise), and again after a reset, ten times over.
+  Warp's CPU graph otherwise), and again after a reset, ten times over; with the shared buffer
+  and with rows per world (room for all: which contacts a world past its rows keeps is not
+  deterministic on a GPU).
 
   The states are fed in rather than stepped to: MuJoCo Warp's own step is not bitwise
   repeatable on a GPU (benchmarks/determinism.py measured qpos 1e-7 apart after one step on an
@@ -736,9 +739,10 @@ def test_graph_capture_deterministic_contacts():
   with wp.ScopedDevice(wp.get_device()):
     sim = load("convex_pile", nworld=nworld)
     m = sim.m
-    sf.install(sim.mjm, m)
+    sf.install(sim.mjm, m, sf.Options(contacts_per_world=contacts_per_world))
     m.opt.deterministic = DeterminismType.ALL
-    d_traj, d_ref, d_cap = (mjw.make_data(sim.mjm, nworld=nworld) for _ in range(3))
+    naconmax = nworld * contacts_per_world if contacts_per_world else None
+    d_traj, d_ref, d_cap = (mjw.make_data(sim.mjm, nworld=nworld, naconmax=naconmax) for _ in range(3))
     states = []
     for _ in range(5):
       mjw.step(m, d_traj)
@@ -761,6 +765,7 @@ def test_graph_capture_deterministic_contacts():
         wp.synchronize()
         ref, cap = all_contacts(d_ref), all_contacts(d_cap)
         assert len(ref["dist"]) > 0 and same_arrays(ref, cap)
+        assert not d_cap.overflow.numpy().any()
         run.append(cap)
       runs.append(run)
     assert all(same_arrays(a, b) for run in runs[1:] for a, b in zip(runs[0], run))

@@ -41,6 +41,7 @@ class ContactQuota:
 
 @wp.func
 def _offset(ptr: wp.uint64, row: int, row_bytes: int) -> wp.uint64:
+  """Address of row ``row`` of a contiguous array (in 64 bits: rows x bytes can pass 2**31)."""
   return ptr + wp.uint64(row) * wp.uint64(row_bytes)
 
 
@@ -79,31 +80,21 @@ def world_rows(
   k = contact_efc_address_out.shape[1]
   return (
     n,
-    wp.array(ptr=_offset(contact_dist_out.ptr, start, _FLOAT), shape=(n,),
-             dtype=float),
-    wp.array(ptr=_offset(contact_pos_out.ptr, start, _VEC3), shape=(n,),
-             dtype=wp.vec3),
-    wp.array(ptr=_offset(contact_frame_out.ptr, start, _MAT33),
-             shape=(n,), dtype=wp.mat33),
-    wp.array(ptr=_offset(contact_includemargin_out.ptr, start, _FLOAT),
-             shape=(n,), dtype=float),
-    wp.array(ptr=_offset(contact_friction_out.ptr, start, _VEC5),
-             shape=(n,), dtype=vec5),
-    wp.array(ptr=_offset(contact_solref_out.ptr, start, _VEC2),
-             shape=(n,), dtype=wp.vec2),
-    wp.array(ptr=_offset(contact_solreffriction_out.ptr, start, _VEC2),
-             shape=(n,), dtype=wp.vec2),
-    wp.array(ptr=_offset(contact_solimp_out.ptr, start, _VEC5),
-             shape=(n,), dtype=vec5),
+    wp.array(ptr=_offset(contact_dist_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contact_pos_out.ptr, start, _VEC3), shape=(n,), dtype=wp.vec3),
+    wp.array(ptr=_offset(contact_frame_out.ptr, start, _MAT33), shape=(n,), dtype=wp.mat33),
+    wp.array(ptr=_offset(contact_includemargin_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contact_friction_out.ptr, start, _VEC5), shape=(n,), dtype=vec5),
+    wp.array(ptr=_offset(contact_solref_out.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
+    wp.array(ptr=_offset(contact_solreffriction_out.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
+    wp.array(ptr=_offset(contact_solimp_out.ptr, start, _VEC5), shape=(n,), dtype=vec5),
     wp.array(ptr=_offset(contact_dim_out.ptr, start, _INT), shape=(n,), dtype=int),
-    wp.array(ptr=_offset(contact_geom_out.ptr, start, _VEC2I),
-             shape=(n,), dtype=wp.vec2i),
+    wp.array(ptr=_offset(contact_geom_out.ptr, start, _VEC2I), shape=(n,), dtype=wp.vec2i),
     wp.array(ptr=_offset(contact_efc_address_out.ptr, start, k * _INT), shape=(n, k), dtype=int),
     wp.array(ptr=_offset(contact_worldid_out.ptr, start, _INT), shape=(n,), dtype=int),
     wp.array(ptr=_offset(contact_type_out.ptr, start, _INT), shape=(n,), dtype=int),
     wp.array(ptr=_offset(contact_geomcollisionid_out.ptr, start, _INT), shape=(n,), dtype=int),
-    wp.array(ptr=_offset(contact_adhesion_out.ptr, start, _FLOAT),
-             shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contact_adhesion_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
     wp.array(ptr=counter, shape=(1,), dtype=int),
   )
 
@@ -191,7 +182,8 @@ def _kept_per_world(
     if wp.atomic_add(nwarned, 0, 1) == 0:
       if found > per_world:
         wp.printf(
-          "mjx_supportfield: narrowphase overflow - %d contacts in world %d; raise Options.contacts_per_world beyond %d\n"
+          "mjx_supportfield: narrowphase overflow - %d contacts in world %d; raise Options.contacts_per_world"
+          " beyond %d\n"
           "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.NARROWPHASE (or = 0 for all)\n",
           found,
           worldid,

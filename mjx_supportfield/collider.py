@@ -34,8 +34,9 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 _ATTR = "_mjx_supportfield_collider"
 _STATE_ATTR = "_mjx_supportfield_state"
 _GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
-# multi-contact pairs per world whose tilts run in parallel threads (narrowphase.tilt_kernel);
-# pairs beyond run them in patch_kernel's thread: same result, only slower
+# multi-contact pairs per world left to the tilts (no face clipping) whose tilts run in parallel
+# threads (narrowphase.tilt_kernel); pairs beyond run them in patch_kernel's thread: same
+# result, only slower
 _TILT_PAIRS_PER_WORLD = 32
 # a sleeping step's second pass appends to the first pass's contacts, which the quota has packed
 _SLEEP_QUOTA = ("mjx_supportfield: Options.contacts_per_world does not work with sleeping (the model enables"
@@ -68,11 +69,16 @@ class DataState:
   queue_count: wp.array  # pairs in each narrow-phase kernel's queue (narrowphase.queue_pair)
   queue_pair: wp.array  # (NQUEUE, capacity) the queues: indices into pair
   queues: narrowphase.PairQueues  # the two above, and what deciding a pair's queue needs
-  patch_count: wp.array  # pairs queued for multi-contact (narrowphase.patch_kernel)
+  patch_count: wp.array  # pairs queued for multi-contact (narrowphase.face_pair_kernel)
   patch_pair: wp.array
   patch_result: wp.array
   patch_pos: wp.array
-  tilt_result: wp.array  # (queued pairs, 8) the tilts' points, both attempts
+  face_count: wp.array  # of those, the pairs touching face on feature (narrowphase.manifold_kernel)
+  face_queue: wp.array  # their indices into patch_pair
+  face_faces: wp.array  # their faces (multicontact.face_pair)
+  tilt_pair_count: wp.array  # and the pairs left to the tilts (narrowphase.patch_kernel)
+  tilt_pair: wp.array  # their indices into patch_pair
+  tilt_result: wp.array  # (pairs left to the tilts, 8) the tilts' points, both attempts
   tilt_count: wp.array  # tilts queued for MPR (narrowphase.tilt_mpr_kernel)
   tilt_queue: wp.array  # their flat indices into tilt_result
   hfield_count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind (heightfield.COUNT_*)
@@ -116,6 +122,8 @@ def start_collision(
   nwarned: wp.array(dtype=int),
   queue_count: wp.array(dtype=int),
   patch_count: wp.array(dtype=int),
+  face_count: wp.array(dtype=int),
+  tilt_pair_count: wp.array(dtype=int),
   tilt_count: wp.array(dtype=int),
   hfield_count: wp.array(dtype=int),
   warm_stamp: wp.array(dtype=int),
@@ -135,6 +143,8 @@ def start_collision(
   npair[0] = 0
   nwarned[0] = 0
   patch_count[0] = 0
+  face_count[0] = 0
+  tilt_pair_count[0] = 0
   tilt_count[0] = 0
   for q in range(queue_count.shape[0]):
     queue_count[q] = 0
@@ -292,6 +302,11 @@ class Collider:
         patch_pair=wp.zeros(capacity, dtype=int),
         patch_result=wp.zeros(capacity, dtype=wp.vec4),
         patch_pos=wp.zeros(capacity, dtype=wp.vec3),
+        face_count=wp.zeros(1, dtype=int),
+        face_queue=wp.zeros(capacity, dtype=int),
+        face_faces=wp.zeros(capacity, dtype=wp.vec3i),
+        tilt_pair_count=wp.zeros(1, dtype=int),
+        tilt_pair=wp.zeros(capacity, dtype=int),
         tilt_result=wp.zeros((ntilt_pair, 2 * narrowphase.NPERTURB), dtype=wp.vec4),
         tilt_count=wp.zeros(1, dtype=int),
         tilt_queue=wp.zeros(ntilt_pair * 2 * narrowphase.NPERTURB, dtype=int),
@@ -346,7 +361,7 @@ class Collider:
       dim=d.nworld,
       inputs=[incremental, warm],
       outputs=[d.ncollision, d.nacon, st.ndropped, st.nonfinite, st.world_npair, st.npair, st.nwarned, st.queue_count,
-               st.patch_count, st.tilt_count, st.hfield_count, st.warm.stamp, st.warm.misses],
+               st.patch_count, st.face_count, st.tilt_pair_count, st.tilt_count, st.hfield_count, st.warm.stamp, st.warm.misses],
     )
     q = st.quota
     if per_world:
@@ -493,21 +508,45 @@ class Collider:
           ] + queue_inputs + [nthread, quota],
           outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
         )
+      wp.launch(
+        narrowphase.face_pair_kernel,
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+          m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode],
+          st.pair, st.pairid, st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, nthread,
+        ],
+        outputs=[st.face_count, st.face_queue, st.face_faces, st.tilt_pair_count, st.tilt_pair],
+      )
+      wp.launch(
+        narrowphase.manifold_kernel,
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
+          m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+          m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
+          self.options.max_contacts_per_pair, self.options.mc_tolerance, st.pair, st.pairid, st.pair_worldid,
+          st.patch_pair, st.patch_result, st.patch_pos, st.face_count, st.face_queue, st.face_faces, nthread,
+          quota,
+        ],
+        outputs=[st.tilt_pair_count, st.tilt_pair] + self._contact_outputs(d),
+      )
       tilt_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
                     m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, SUPPORT_MODE_ID[self.options.support_mode]]
       wp.launch(
         narrowphase.tilt_kernel,
         dim=nthread_tilt,
-        inputs=tilt_model + [self.options.mc_perturbation, st.pair, st.pairid, st.pair_worldid, st.patch_count,
-                             st.patch_pair, st.patch_result, st.patch_pos, nthread_tilt],
+        inputs=tilt_model + [self.options.mc_perturbation, st.pair, st.pairid, st.pair_worldid, st.tilt_pair_count,
+                             st.tilt_pair, st.patch_pair, st.patch_result, st.patch_pos, nthread_tilt],
         outputs=[st.tilt_result, st.tilt_count, st.tilt_queue],
       )
       wp.launch(
         narrowphase.tilt_mpr_kernel,
         dim=nthread_tilt,
         inputs=tilt_model + [self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mc_perturbation,
-                             st.pair, st.pairid, st.pair_worldid, st.patch_pair, st.patch_result, st.patch_pos,
-                             st.tilt_count, st.tilt_queue, nthread_tilt],
+                             st.pair, st.pairid, st.pair_worldid, st.tilt_pair, st.patch_pair, st.patch_result,
+                             st.patch_pos, st.tilt_count, st.tilt_queue, nthread_tilt],
         outputs=[st.tilt_result],
       )
       wp.launch(
@@ -520,8 +559,8 @@ class Collider:
           m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
           SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
           self.options.max_contacts_per_pair, self.options.mc_perturbation, self.options.mc_tolerance, st.pair,
-          st.pairid, st.pair_worldid, st.patch_count, st.patch_pair, st.patch_result, st.patch_pos, st.tilt_result,
-          nthread, quota,
+          st.pairid, st.pair_worldid, st.tilt_pair_count, st.tilt_pair, st.patch_pair, st.patch_result, st.patch_pos,
+          st.tilt_result, nthread, quota,
         ],
         outputs=self._contact_outputs(d),
       )

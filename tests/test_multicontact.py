@@ -1,5 +1,6 @@
-"""Multi-contact by pose perturbation: flat patches get points spread over the patch, at the
-right depth; spheres and ellipsoids keep one point; the option turns it off."""
+"""Multi-contact: face clipping where the normal lies along a flat face, pose perturbation
+(the tilts) for the rest. Flat patches get points spread over the patch, at the right depth;
+spheres and ellipsoids keep one point; the option turns it off."""
 
 import numpy as np
 import pytest
@@ -70,12 +71,17 @@ def test_face_on_face_spans_the_patch(result):
 
 
 def test_cylinder_end_on_box_rim_points(result):
+  """The largest quadrilateral of the end's 16-gon, and the deepest corner when it is not one
+  of the four (all are as deep: the first corner): four or five points on the rim, around the
+  axis."""
   sim, c = result[True]
   dist, pos, _ = _pair(sim, c, "base", "cyl")
-  assert len(dist) == 4  # the four tilts; MPR's own point, on the face, is left out
+  assert 4 <= len(dist) <= 5
   np.testing.assert_allclose(dist, -0.001, atol=1e-5)
   radial = np.linalg.norm(pos[:, :2] - [1.0, 0.0], axis=1)
-  assert np.all(radial > 0.029) and np.all(radial < 0.0301)  # all four on the rim
+  np.testing.assert_allclose(radial, 0.03, atol=1e-5)  # corners of the 16-gon lie on the rim
+  angles = np.sort(np.degrees(np.arctan2(pos[:, 1], pos[:, 0] - 1.0)))
+  assert np.diff(np.append(angles, angles[0] + 360.0)).max() <= 112.5 + 1e-3, angles
 
 
 def test_round_shapes_keep_one_point(result):
@@ -192,34 +198,6 @@ def test_small_geom_sunk_in_mesh_matches_mujoco(kind, where):
   assert np.degrees(np.arccos(np.clip(np.dot(normal, ref_normal), -1, 1))) < 1.0
 
 
-SCENES = {"patches": XML, "slanted": SLANT_XML.replace("{deg}", "3.0").replace("{z}", "0.1495")}
-
-
-@pytest.mark.parametrize("scene", list(SCENES))
-@pytest.mark.parametrize("per_world", [0, 1])
-def test_parallel_tilts_match_the_sequential_ones(monkeypatch, scene, per_world):
-  """The tilts' MPRs (both attempts) run in their own threads (tilt_kernel) for up to a set
-  number of queued pairs per world, the rest in patch_kernel's thread: both give the same
-  contacts, bit for bit (room for every pair, for one, for none). On the slanted cubes the
-  first attempts land back on the first contact, so the steeper ones decide."""
-
-  def run():
-    sim = load(SCENES[scene], nworld=2)
-    sf.install(sim.mjm, sim.m)
-    sf.collision(sim.m, sim.d)
-    n = int(sim.d.nacon.numpy()[0])
-    c = sim.d.contact
-    rows = np.concatenate([c.worldid.numpy()[:n, None], c.geom.numpy()[:n], c.dist.numpy()[:n, None],
-                           c.pos.numpy()[:n], c.frame.numpy()[:n].reshape(n, 9)], axis=1)
-    return rows[np.lexsort(rows.T[::-1])]
-
-  parallel = run()
-  monkeypatch.setattr(collider, "_TILT_PAIRS_PER_WORLD", per_world)
-  fewer = run()
-  assert len(parallel) >= 2 * (8 if scene == "patches" else 2)
-  np.testing.assert_array_equal(fewer, parallel)
-
-
 CROSS_XML = """
 <mujoco>
   <asset><mesh name="bar" vertex="-.1 -.01 -.01 .1 -.01 -.01 -.1 .01 -.01 .1 .01 -.01 -.1 -.01 .01 .1 -.01 .01 -.1 .01 .01 .1 .01 .01"/></asset>
@@ -229,6 +207,90 @@ CROSS_XML = """
   </worldbody>
 </mujoco>
 """
+
+# two cylinders lying side by side along x, one on the other: a line contact of curved sides
+ROLLERS_XML = """
+<mujoco>
+  <worldbody>
+    <body pos="0 0 0" euler="0 90 0"><freejoint/><geom name="lower" type="cylinder" size=".02 .05"/></body>
+    <body pos="0 0.005 0.0389" euler="0 90 0"><freejoint/><geom name="upper" type="cylinder" size=".02 .04"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+# a 48-gon prism standing on a box: its end and the box's face have more corners together than
+# face clipping takes on (multicontact.FACE_PAIR_BUDGET corner pairs)
+_ANGLES = np.arange(48) * 2.0 * np.pi / 48
+PRISM = " ".join(f"{0.03 * np.cos(t):.6f} {0.03 * np.sin(t):.6f} {z}" for z in (-0.02, 0.02) for t in _ANGLES)
+PRISM_XML = f"""
+<mujoco>
+  <asset><mesh name="prism" vertex="{PRISM}"/></asset>
+  <worldbody>
+    <geom name="table" type="box" size=".1 .1 .05"/>
+    <body pos="0 0 0.069"><freejoint/><geom name="prism" type="mesh" mesh="prism"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _queues(src, nworld=1):
+  """After one collision: the pairs queued for multi-contact, those left to the tilts, the sim."""
+  sim = load(src, nworld=nworld)
+  sf.install(sim.mjm, sim.m)
+  sf.collision(sim.m, sim.d)
+  st = sf.get_collider(sim.m).state(sim.m, sim.d)
+  return int(st.patch_count.numpy()[0]), int(st.tilt_pair_count.numpy()[0]), sim
+
+
+def test_face_contacts_skip_the_tilts():
+  """The face contacts (a cube on a cube, a cylinder's end on a box) are clipped: no pair of
+  theirs reaches the tilt kernels. Crossed bars (edge on edge) and rollers (curved sides) have no
+  face along the normal and go to the tilts."""
+  assert _queues(XML)[:2] == (2, 0)
+  assert _queues(CROSS_XML)[:2] == (1, 1)
+  assert _queues(ROLLERS_XML)[:2] == (1, 1)
+
+
+def test_polygons_over_the_budget_go_to_the_tilts():
+  """A 48-gon end on a box's face (48 x 4 corner pairs, over multicontact.FACE_PAIR_BUDGET): the pair
+  goes to the tilts, which still spread points over the end's rim, at the depth."""
+  assert multicontact.FACE_PAIR_BUDGET < 48 * 4
+  npatch, ntilt, sim = _queues(PRISM_XML)
+  assert (npatch, ntilt) == (1, 1)
+  c = contacts(sim.d, 0)
+  assert c.n >= 3
+  np.testing.assert_allclose(c.dist, -0.001, atol=2e-5)
+  radial = np.linalg.norm(c.pos[:, :2], axis=1)
+  assert np.all(radial > 0.029), radial
+
+
+SCENES = {"crossed": CROSS_XML, "rollers": ROLLERS_XML}
+
+
+@pytest.mark.parametrize("scene", list(SCENES))
+@pytest.mark.parametrize("per_world", [0, 1])
+def test_parallel_tilts_match_the_sequential_ones(monkeypatch, scene, per_world):
+  """The tilts' MPRs (both attempts) run in their own threads (tilt_kernel) for up to a set
+  number of pairs per world left to the tilts, the rest in patch_kernel's thread: both give the
+  same contacts, bit for bit (room for every pair, for one, for none). Crossed bars and
+  rollers: no face lies along the normal, so their pairs take the tilts."""
+
+  def run():
+    sim = load(SCENES[scene], nworld=2)
+    sf.install(sim.mjm, sim.m)
+    sf.collision(sim.m, sim.d)
+    assert int(sf.get_collider(sim.m).state(sim.m, sim.d).tilt_pair_count.numpy()[0]) == 2
+    n = int(sim.d.nacon.numpy()[0])
+    c = sim.d.contact
+    rows = np.concatenate([c.worldid.numpy()[:n, None], c.geom.numpy()[:n], c.dist.numpy()[:n, None],
+                           c.pos.numpy()[:n], c.frame.numpy()[:n].reshape(n, 9)], axis=1)
+    return rows[np.lexsort(rows.T[::-1])]
+
+  parallel = run()
+  monkeypatch.setattr(collider, "_TILT_PAIRS_PER_WORLD", per_world)
+  fewer = run()
+  assert len(parallel) >= 2 * (2 if scene == "rollers" else 1)
+  np.testing.assert_array_equal(fewer, parallel)
 
 
 @wp.kernel
@@ -292,7 +354,8 @@ def test_closed_form_tilts_match_the_tilted_mpr(scene):
   must not answer. On a cylinder's rim MPR's point is only as good as its tolerance on the
   curve (0.14 mm off the rim here), the closed form's is the rim's support point
   (test_cylinder_end_on_box_rim_points)."""
-  sim = {"patches": lambda: load(XML), "slanted": lambda: load(SCENES["slanted"]), "crossed": lambda: load(CROSS_XML),
+  sim = {"patches": lambda: load(XML), "slanted": lambda: load(SLANT_XML.replace("{deg}", "3.0").replace("{z}", "0.1495")),
+         "crossed": lambda: load(CROSS_XML),
          "convex_pile": lambda: _settled("convex_pile")}[scene]()
   closed, by_mpr, flat = _tilts_both_ways(sim)
   assert len(closed) > 0

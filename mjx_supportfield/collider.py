@@ -16,6 +16,7 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
 from mjx_supportfield import broadphase
+from mjx_supportfield import contact_quota
 from mjx_supportfield import contact_sort
 from mjx_supportfield import heightfield
 from mjx_supportfield import nonconvex
@@ -37,6 +38,9 @@ _GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
 # threads (narrowphase.tilt_kernel); pairs beyond run them in patch_kernel's thread: same
 # result, only slower
 _TILT_PAIRS_PER_WORLD = 32
+# a sleeping step's second pass appends to the first pass's contacts, which the quota has packed
+_SLEEP_QUOTA = ("mjx_supportfield: Options.contacts_per_world does not work with sleeping (the model enables"
+                " mjtEnableBit.mjENBL_SLEEP); use contacts_per_world = 0 or disable sleeping")
 
 
 @dataclasses.dataclass
@@ -85,6 +89,7 @@ class DataState:
   hfield_answer: wp.array  # (MPRs) each MPR's point and depth
   hfield_normal: wp.array  # (MPRs) and normal
   pair_outputs: broadphase.PairOutputs  # the arrays above (and d's overflow, ncollision) for the broad phase
+  quota: contact_quota.QuotaBuffers  # each world's contact rows (Options.contacts_per_world)
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
 
 
@@ -156,6 +161,8 @@ class Collider:
 
   def __init__(self, mjm: mujoco.MjModel, m, options: Options):
     _check_heightfields(mjm)
+    if options.contacts_per_world and m.opt.enableflags & EnableBit.SLEEP:
+      raise ValueError(_SLEEP_QUOTA)
     self.options = options
     self.ngeom, self.nq, self.nbody = mjm.ngeom, mjm.nq, mjm.nbody
     device = m.geom_type.device
@@ -312,6 +319,7 @@ class Collider:
         hfield_normal=wp.zeros(nhfield_mpr, dtype=wp.vec3),
         pair_outputs=broadphase.PairOutputs(),
         queues=narrowphase.PairQueues(),
+        quota=contact_quota.make_buffers(nworld, self.options.contacts_per_world),
       )
     out = st.pair_outputs
     out.world_npair, out.slot_pair, out.slot_pairid = st.world_npair, st.slot_pair, st.slot_pairid
@@ -340,6 +348,11 @@ class Collider:
     if d.naconmax == 0 or m.opt.disableflags & (DisableBit.CONSTRAINT | DisableBit.CONTACT):
       d.nacon.zero_()
       return
+    per_world = self.options.contacts_per_world
+    if per_world:
+      contact_quota.check_fits(per_world, d.nworld, d.naconmax)
+      if awake_prev is not None or m.opt.enableflags & EnableBit.SLEEP:  # enabled after install
+        raise ValueError(_SLEEP_QUOTA)
     st = self.state(m, d)
     incremental = awake_prev is not None
     warm = bool(self.mpr_types) and self.options.warm_start
@@ -350,12 +363,19 @@ class Collider:
       outputs=[d.ncollision, d.nacon, st.ndropped, st.nonfinite, st.world_npair, st.npair, st.nwarned, st.queue_count,
                st.patch_count, st.face_count, st.tilt_pair_count, st.tilt_count, st.hfield_count, st.warm.stamp, st.warm.misses],
     )
+    q = st.quota
+    if per_world:
+      wp.launch(contact_quota.start_worlds, dim=d.nworld, inputs=[per_world],
+                outputs=[d.nacon, q.quota.world_ncon, q.stock_dropped, q.nwarned])
 
     self._broadphase(m, d, st, awake_prev)
     self._narrowphase(m, d, st)
 
     if m.nflex > 0 and not incremental:
       collision_driver.flex_collision(m, d, st.stock_ctx)
+    if per_world:
+      contact_quota.pack(d, q, bool(int(m.opt.warn_overflow) & int(OverflowType.NARROWPHASE)))
+    # the packed rows keep each world's writers' order, which atomics make vary on a GPU: the sort still runs
     if m.opt.deterministic & DeterminismType.CONTACTS:
       if st.sort is None:
         st.sort = contact_sort.make_buffers(d, self.ngeom)
@@ -435,6 +455,7 @@ class Collider:
             c.efc_address, c.worldid, c.type, c.geomcollisionid, c.adhesion, d.nacon]
 
   def _narrowphase(self, m, d, st: DataState):
+    quota = st.quota.quota
     nthread = max(1, min(st.capacity, _GRID_THREADS))
     pair_inputs = [st.npair, st.pair, st.pairid, st.pair_worldid, nthread]
     queue_inputs = [st.queue_count, st.queue_pair, st.pair, st.pairid, st.pair_worldid]  # + the launch's threads
@@ -462,7 +483,7 @@ class Collider:
           m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
           m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
           m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
-        ] + queue_inputs + [nthread_analytic],
+        ] + queue_inputs + [nthread_analytic, quota],
         outputs=self._contact_outputs(d),
       )
     if self.mpr_types:
@@ -484,7 +505,7 @@ class Collider:
             self.options.max_contacts_per_pair if self.options.multi_contact else 1, self.options.mc_perturbation,
             self.mesh_sdf, self.options.mpr_to_sdf_overlap_ratio, self.options.warm_start,
             warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses,
-          ] + queue_inputs + [nthread],
+          ] + queue_inputs + [nthread, quota],
           outputs=[st.patch_count, st.patch_pair, st.patch_result, st.patch_pos] + self._contact_outputs(d),
         )
       wp.launch(
@@ -507,6 +528,7 @@ class Collider:
           m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
           self.options.max_contacts_per_pair, self.options.mc_tolerance, st.pair, st.pairid, st.pair_worldid,
           st.patch_pair, st.patch_result, st.patch_pos, st.face_count, st.face_queue, st.face_faces, nthread,
+          quota,
         ],
         outputs=[st.tilt_pair_count, st.tilt_pair] + self._contact_outputs(d),
       )
@@ -538,7 +560,7 @@ class Collider:
           SUPPORT_MODE_ID[self.options.support_mode], self.options.mpr_tolerance, self.options.mpr_iterations,
           self.options.max_contacts_per_pair, self.options.mc_perturbation, self.options.mc_tolerance, st.pair,
           st.pairid, st.pair_worldid, st.tilt_pair_count, st.tilt_pair, st.patch_pair, st.patch_result, st.patch_pos,
-          st.tilt_result, nthread,
+          st.tilt_result, nthread, quota,
         ],
         outputs=self._contact_outputs(d),
       )
@@ -555,7 +577,7 @@ class Collider:
           m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat,
           d.naconmax, self.mesh_support, self.geom_nonconvex, self.sdfs, SUPPORT_MODE_ID[self.options.support_mode],
           self.options.max_contacts_per_pair, self.options.mc_tolerance,
-        ] + pair_inputs,
+        ] + pair_inputs + [quota],
         outputs=self._contact_outputs(d),
       )
     if self.has_stock_pairs:
@@ -605,7 +627,7 @@ class Collider:
         self.options.mpr_tolerance, self.options.mpr_iterations, self.options.mpr_refine,
         self.options.max_contacts_per_pair, self.options.mc_tolerance, st.pair, st.pairid,
         st.pair_worldid, st.hfield_count, st.hfield_pair, st.hfield_job, st.hfield_answer, st.hfield_normal,
-        nthread_pair,
+        nthread_pair, st.quota.quota,
       ],
       outputs=[d.overflow] + self._contact_outputs(d),
     )
@@ -619,7 +641,10 @@ class Collider:
     summary (totals and the worlds with the most pairs or drops; ``summary()``).
 
     With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
-    ``dropped_contacts`` counts the contacts beyond ``d.naconmax`` (all worlds together).
+    ``dropped_contacts`` counts the contacts beyond ``d.naconmax`` (all worlds together), and with
+    ``Options.contacts_per_world`` also those beyond each world's rows; ``dropped_contacts_per_world``
+    has those of each world (all 0 without contacts_per_world: the shared buffer does not know whose
+    contacts it dropped).
     ``warm_start_misses`` counts the pairs whose warm-started MPR missed and ran again cold.
     ``hfield_mprs_unqueued`` counts the terrain MPRs the heightfield queue had no room for: they
     ran one after another in their pair's thread (the same contacts, slower; see
@@ -631,15 +656,27 @@ class Collider:
     st = states.get(self) if states is not None else None
     if st is None:
       return CollisionStats({"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
-                             "dropped_contacts": 0, "warm_start_misses": 0, "hfield_mprs_unqueued": 0})
+                             "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
+                             "hfield_mprs_unqueued": 0})
     return CollisionStats({
       "pairs": int(st.npair.numpy()[0]),
       "pairs_per_world": np.minimum(st.world_npair.numpy(), self.max_pairs).tolist(),
       "dropped_pairs_per_world": st.ndropped.numpy().tolist(),
       "nonfinite_worlds": np.nonzero(st.nonfinite.numpy())[0].tolist(),
-      # contacts found beyond d.naconmax (not stored; mjw.step flags OverflowType.NARROWPHASE)
-      "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
+      **self._dropped_contacts(d, st),
       "warm_start_misses": int(st.warm.misses.numpy()[0]) if self.options.warm_start else 0,
       # terrain MPRs that found the heightfield queue full and ran in their pair's thread
       "hfield_mprs_unqueued": int(st.hfield_count.numpy()[heightfield.COUNT_UNQUEUED]),
     })
+
+  def _dropped_contacts(self, d, st: DataState) -> dict:
+    """Contacts found but not stored: beyond naconmax (mjw.step flags OverflowType.NARROWPHASE) or,
+    with contacts_per_world, beyond a world's rows (flagged in that world)."""
+    per_world = self.options.contacts_per_world
+    if not per_world:
+      return {"dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
+              "dropped_contacts_per_world": [0] * d.nworld}
+    q = st.quota
+    per_world_dropped = np.maximum(q.quota.world_ncon.numpy() - per_world, 0)
+    return {"dropped_contacts": int(per_world_dropped.sum()) + int(q.stock_dropped.numpy()[0]),
+            "dropped_contacts_per_world": per_world_dropped.tolist()}

@@ -54,6 +54,7 @@ from mjx_supportfield.candidates import add_candidate
 from mjx_supportfield.candidates import empty
 from mjx_supportfield.candidates import row
 from mjx_supportfield.candidates import write_candidates
+from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
@@ -897,6 +898,7 @@ def hfield_contacts(
   answer_in: wp.array(dtype=wp.vec4),
   normal_in: wp.array(dtype=wp.vec3),
   nthread: int,
+  quota: ContactQuota,
   # Data out:
   overflow_out: wp.array(dtype=int),
   contact_dist_out: wp.array(dtype=float),
@@ -973,5 +975,5 @@ def hfield_contacts(
       solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,
       contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
     )

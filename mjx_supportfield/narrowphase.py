@@ -17,6 +17,8 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
 from mjx_supportfield import warmstart
+from mjx_supportfield.contact_quota import ContactQuota
+from mjx_supportfield.contact_quota import world_rows
 from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
@@ -114,6 +116,7 @@ def analytic_kernel(pair_types: tuple):
     pairid_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
     nthread: int,
+    quota: ContactQuota,
     # Data out:
     contact_dist_out: wp.array(dtype=float),
     contact_pos_out: wp.array(dtype=wp.vec3),
@@ -139,6 +142,14 @@ def analytic_kernel(pair_types: tuple):
       type1 = geom_type[geoms[0]]
       type2 = geom_type[geoms[1]]
       worldid = pair_worldid_in[cid]
+      (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+       rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
+       rows_nacon) = world_rows(
+        quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+        contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+        contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+        contact_adhesion_out, nacon_out,
+      )
       for i in range(wp.static(len(funcs))):
         if type1 == wp.static(pair_types[i][0]) and type2 == wp.static(pair_types[i][1]):
           _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
@@ -188,7 +199,7 @@ def analytic_kernel(pair_types: tuple):
             worldid,
           )
           wp.static(funcs[i])(
-            naconmax_in,
+            limit,
             geom1,
             geom2,
             worldid,
@@ -202,22 +213,22 @@ def analytic_kernel(pair_types: tuple):
             adhesion,
             geoms,
             pairid_in[cid],
-            contact_dist_out,
-            contact_pos_out,
-            contact_frame_out,
-            contact_includemargin_out,
-            contact_friction_out,
-            contact_solref_out,
-            contact_solreffriction_out,
-            contact_solimp_out,
-            contact_dim_out,
-            contact_geom_out,
-            contact_efc_address_out,
-            contact_worldid_out,
-            contact_type_out,
-            contact_geomcollisionid_out,
-            contact_adhesion_out,
-            nacon_out,
+            rows_dist,
+            rows_pos,
+            rows_frame,
+            rows_includemargin,
+            rows_friction,
+            rows_solref,
+            rows_solreffriction,
+            rows_solimp,
+            rows_dim,
+            rows_geom,
+            rows_efc_address,
+            rows_worldid,
+            rows_type,
+            rows_geomcollisionid,
+            rows_adhesion,
+            rows_nacon,
           )
 
   return analytic_narrowphase
@@ -307,9 +318,18 @@ def write_pair_contacts(
   contact_geomcollisionid_out: wp.array(dtype=int),
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
+  quota: ContactQuota,
 ):
   """Writes a pair's contacts: MPR's point (when kept, see keep_first), then the patch's points,
   all with MPR's normal; the margin band comes off depth and position."""
+  (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+   rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
+   rows_nacon) = world_rows(
+    quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+    contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+    contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+    contact_adhesion_out, nacon_out,
+  )
   first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, min_spacing, tol_abs), -1, 0), -1)
   count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
   frame = make_frame(res.normal)
@@ -321,11 +341,11 @@ def write_pair_contacts(
       depth = extra.depth[j]
       pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
     write_contact(
-      naconmax_in, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim, friction, solref,
-      solreffriction, solimp, adhesion, geoms, pairid, worldid, contact_dist_out, contact_pos_out, contact_frame_out,
-      contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
-      contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
-      contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      limit, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim, friction, solref,
+      solreffriction, solimp, adhesion, geoms, pairid, worldid, rows_dist, rows_pos, rows_frame,
+      rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+      rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid,
+      rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
     )
 
 
@@ -500,6 +520,7 @@ def convex_kernel(use_gjk: bool):
     pairid_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
     nthread: int,
+    quota: ContactQuota,
     # Out:
     patch_count: wp.array(dtype=int),
     patch_pair: wp.array(dtype=int),
@@ -623,7 +644,7 @@ def convex_kernel(use_gjk: bool):
         adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out, contact_frame_out,
         contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
         contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
-        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
       )
 
   return convex_narrowphase
@@ -798,6 +819,7 @@ def manifold_kernel(
   face_queue: wp.array(dtype=int),
   face_faces: wp.array(dtype=wp.vec3i),
   nthread: int,
+  quota: ContactQuota,
   # Out:
   tilt_pair_count: wp.array(dtype=int),
   tilt_pair: wp.array(dtype=int),
@@ -859,16 +881,25 @@ def manifold_kernel(
     ref_geom = geoms[wp.where(found.ref_is_b, 1, 0)]
     rot = geom_xmat_in[worldid, ref_geom]
     shift = geom_xpos_in[worldid, ref_geom]
+    # the world's contact rows (Options.contacts_per_world), made once the clipping is done
+    (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+     rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
+     rows_nacon) = world_rows(
+      quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+      contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+      contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+      contact_adhesion_out, nacon_out,
+    )
     for k in range(found.n):
       pos = rot @ manifold_pos(found, k) + shift
       if k == found.first:
         pos = res.pos - 0.5 * band * res.normal
       write_contact(
-        naconmax_in, k, manifold_dist(found, k), pos, frame, margin, gap,
-        condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
-        contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-        contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-        contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+        limit, k, manifold_dist(found, k), pos, frame, margin, gap,
+        condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, rows_dist,
+        rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
+        rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address,
+        rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
       )
 
 
@@ -1020,6 +1051,7 @@ def patch_kernel(
   patch_pos: wp.array(dtype=wp.vec3),
   tilt_result: wp.array2d(dtype=wp.vec4),
   nthread: int,
+  quota: ContactQuota,
   # Data out:
   contact_dist_out: wp.array(dtype=float),
   contact_pos_out: wp.array(dtype=wp.vec3),
@@ -1072,5 +1104,5 @@ def patch_kernel(
       friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
       contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
     )

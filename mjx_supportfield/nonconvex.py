@@ -29,6 +29,7 @@ from mjx_supportfield.candidates import Candidates
 from mjx_supportfield.candidates import add_candidate
 from mjx_supportfield.candidates import empty
 from mjx_supportfield.candidates import write_candidates
+from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import sample_point
@@ -309,6 +310,7 @@ def nonconvex_narrowphase(
   pairid_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
   nthread: int,
+  quota: ContactQuota,
   # Data out:
   contact_dist_out: wp.array(dtype=float),
   contact_pos_out: wp.array(dtype=wp.vec3),
@@ -358,5 +360,5 @@ def nonconvex_narrowphase(
       friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
       contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
     )

@@ -97,6 +97,14 @@ class Options:
       hundred over a hundred cells) run side by side from this queue; those that find it full
       run one after another in the pair's own thread: the same contacts, slower (counted in
       the collider's stats as ``hfield_mprs_unqueued``; raise it when that count is large).
+    contacts_per_world: rows of ``d.contact`` each world owns. Default 0, integer 0 to 16777216
+      (2**24). 0: all worlds share ``d.naconmax`` rows, first come first served, so when they
+      overflow any world can lose contacts. N > 0: world w writes rows [w*N, (w+1)*N) only, and
+      a world with more contacts than N loses its own (counted per world in ``stats(d)``, flagged
+      in ``d.overflow`` as ``OverflowType.NARROWPHASE``), never another world's; the rows are
+      then packed to the front. nworld x N must fit in naconmax; the rows beyond hold the
+      contacts of MuJoCo Warp's own collision routines (SDF geoms, collision sensors, flexes),
+      which stay shared. Not with sleeping enabled (install refuses it).
   """
 
   support_res: int = 180
@@ -118,6 +126,7 @@ class Options:
   nonconvex_geoms: tuple = ()
   nonconvex_sdf_res: int = 64
   hfield_mprs_per_pair: int = 16
+  contacts_per_world: int = 0
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)
@@ -142,6 +151,7 @@ class Options:
     _check_int("sdf_res", self.sdf_res, 8, 256)
     _check_int("nonconvex_sdf_res", self.nonconvex_sdf_res, 8, 512)
     _check_int("hfield_mprs_per_pair", self.hfield_mprs_per_pair, 1, 4096)
+    _check_int("contacts_per_world", self.contacts_per_world, 0, 1 << 24)
     names = self.nonconvex_geoms
     if isinstance(names, str) or not isinstance(names, (tuple, list)) or not all(isinstance(n, str) for n in names):
       raise ValueError(f"Options.nonconvex_geoms: expected a list of geom names, got {names!r}")

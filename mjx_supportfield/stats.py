@@ -9,7 +9,9 @@ class CollisionStats(dict):
     pairs_per_world: pairs kept in each world (a list of nworld counts).
     dropped_pairs_per_world: pairs beyond ``Options.max_collision_pairs`` in each world.
     nonfinite_worlds: worlds in which a geom pose held NaN or inf (they got no pairs).
-    dropped_contacts: contacts found beyond ``d.naconmax`` (all worlds together).
+    dropped_contacts: contacts found beyond ``d.naconmax`` (all worlds together), and with
+      ``Options.contacts_per_world`` beyond each world's rows.
+    dropped_contacts_per_world: those beyond each world's rows (all 0 without contacts_per_world).
     warm_start_misses: pairs whose warm-started MPR missed and ran again cold.
     hfield_mprs_unqueued: terrain MPRs the heightfield queue had no room for.
 
@@ -39,7 +41,13 @@ class CollisionStats(dict):
                    f"{_worst(dropped, worst)}); raise Options.max_collision_pairs")
     else:
       lines.append("dropped pairs: 0")
-    if self["dropped_contacts"]:
+    per_world = self.get("dropped_contacts_per_world") or [0]
+    if any(per_world):
+      nworld = sum(1 for x in per_world if x)
+      lines.append(f"dropped contacts: {self['dropped_contacts']}, {sum(per_world)} of them in {nworld} "
+                   f"world{'s' if nworld > 1 else ''} past their rows (most: {_worst(per_world, worst)}); raise "
+                   "Options.contacts_per_world")
+    elif self["dropped_contacts"]:
       lines.append(f"dropped contacts: {self['dropped_contacts']} beyond naconmax; make the Data with a larger "
                    "naconmax")
     else:

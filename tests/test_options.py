@@ -68,6 +68,9 @@ INVALID = [
   ("hfield_mprs_per_pair", 0),
   ("hfield_mprs_per_pair", 16.0),
   ("hfield_mprs_per_pair", 5000),
+  ("contacts_per_world", -1),
+  ("contacts_per_world", 1 << 25),
+  ("contacts_per_world", 4.0),
 ]
 
 
@@ -86,6 +89,8 @@ def test_boundaries_accepted():
   Options(mpr_tolerance=1e-2)
   Options(hfield_mprs_per_pair=1)
   Options(hfield_mprs_per_pair=4096)
+  Options(contacts_per_world=0)
+  Options(contacts_per_world=1 << 24)
 
 
 def test_from_dict():

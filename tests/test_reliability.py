@@ -25,8 +25,10 @@ from conftest import angle_deg
 from conftest import contact_table
 from conftest import contacts
 from conftest import load
+from conftest import load_mjmodel
 from conftest import mjc_contact_table
 from mjx_supportfield import contact_sort
+from mjx_supportfield.bench import settled_state
 from mjx_supportfield.cli import main as cli_main
 
 NWORLD = 3
@@ -380,6 +382,116 @@ def test_pair_overflow_in_one_world_leaves_the_others_bitwise_unchanged():
 
 
 
+def test_contact_overflow_in_one_world_leaves_the_others_bitwise_unchanged():
+  """Options.contacts_per_world: world 0 has all six hulls piled into one spot and finds more
+  contacts than its rows; world 1, at rest, keeps bitwise the contacts it has beside a clean
+  world (with the shared buffer the pile's writers, first on the CPU, took world 1's rows), the
+  pile keeps exactly its rows, and its overflow is flagged and counted in its world only."""
+  sim = load("convex_pile", nworld=2)
+  mjm, m = sim.mjm, sim.m
+  resting = perturbed_pile_qpos(mjm, 0)[0]
+  piled = resting.copy()
+  for i in range(6):
+    piled[free_qpos_adr(mjm, f"mesh{i}") : free_qpos_adr(mjm, f"mesh{i}") + 3] = (0.0, 0.0, 0.3 + 0.01 * i)
+  quiet_overflow(m)
+
+  def run(options, first, naconmax=None):
+    collider = sf.install(mjm, m, options)
+    d = mjw.put_data(mjm, sim.mjd, nworld=2, naconmax=naconmax)
+    d.qpos.assign(np.stack([first, resting]).astype(np.float32))
+    mjw.kinematics(m, d)
+    sf.collision(m, d)
+    out = collider.stats(d), d.overflow.numpy().copy(), [sorted_rows(world_contact_fields(d, w)) for w in (0, 1)]
+    sf.uninstall(m)
+    return out
+
+  with bitwise_repeatable(m):
+    _, _, (found, rest) = run(sf.Options(), piled)
+    quota = rest["dist"].size  # world 1's contacts fit, world 0's do not
+    assert found["dist"].size > quota > 0
+    options = sf.Options(contacts_per_world=quota)
+    clean_stats, clean_overflow, (_, clean) = run(options, resting, naconmax=2 * quota)
+    stats, overflow, (pile, isolated) = run(options, piled, naconmax=2 * quota)
+  assert clean_stats["dropped_contacts_per_world"] == [0, 0] and not clean_overflow.any()
+  assert stats["dropped_contacts_per_world"] == [found["dist"].size - quota, 0]
+  assert stats["dropped_contacts"] == found["dist"].size - quota
+  assert overflow[0] & int(OverflowType.NARROWPHASE) and not overflow[1] & int(OverflowType.NARROWPHASE)
+  assert pile["dist"].size == quota
+  for f in clean:
+    assert np.array_equal(isolated[f], clean[f]), f
+    assert np.array_equal(isolated[f], rest[f]), f
+
+
+SENSOR_SCENE = """<mujoco><worldbody><geom name="floor" type="plane" size="1 1 .1"/>
+  <body pos="0 0 .09"><freejoint/><geom name="box" type="box" size=".1 .1 .1"/></body>
+  <body pos=".5 0 .2"><freejoint/><geom name="ball" type="sphere" size=".1"/></body></worldbody>
+  <sensor><distance geom1="box" geom2="floor" cutoff="1"/></sensor></mujoco>"""
+
+
+@pytest.mark.parametrize("scene", ["terrain", "nonconvex", "sensor"])
+def test_contacts_per_world_with_room_keeps_every_contact(scene):
+  """With room for every world, the world rows give each world the contacts of the shared buffer,
+  from every writer: heightfield and non-convex candidates, MuJoCo Warp's analytic routines, and
+  its own narrow phase for a collision sensor's pair, which writes after the world rows."""
+  mjm = load_mjmodel(SENSOR_SCENE if scene == "sensor" else scene)
+  sim = load(None, nworld=2, mjm=mjm)
+  m = sim.m
+  qpos = np.tile(settled_state(mjm, 500).qpos, (2, 1))
+  qpos[1, 2] -= 0.01  # the worlds differ: the first free body sinks in world 1
+  naconmax = 256
+
+  def run(options):
+    collider = sf.install(mjm, m, options)
+    d = mjw.put_data(mjm, sim.mjd, nworld=2, naconmax=naconmax)
+    d.qpos.assign(qpos.astype(np.float32))
+    mjw.kinematics(m, d)
+    sf.collision(m, d)
+    out = collider.stats(d), int(d.nacon.numpy()[0]), [sorted_rows(world_contact_fields(d, w)) for w in (0, 1)]
+    sf.uninstall(m)
+    return out
+
+  with bitwise_repeatable(m):
+    _, nacon, shared = run(sf.Options())
+    stats, packed, rows = run(sf.Options(contacts_per_world=naconmax // 4))  # half the rows stay shared
+  assert nacon < naconmax and shared[0]["dist"].size > 0 and shared[1]["dist"].size > 0
+  assert packed == nacon and stats["dropped_contacts"] == 0
+  for w in (0, 1):
+    for f in shared[w]:
+      assert np.array_equal(rows[w][f], shared[w][f]), (w, f)
+
+
+def test_contacts_per_world_beyond_naconmax_raises(pile):
+  """nworld x contacts_per_world rows must fit in naconmax: one clear error at the first collision."""
+  sf.uninstall(pile.m)
+  try:
+    sf.install(pile.mjm, pile.m, sf.Options(contacts_per_world=10))
+    d = mjw.make_data(pile.mjm, nworld=NWORLD, naconmax=10 * NWORLD - 1)
+    with pytest.raises(ValueError, match=rf"contacts_per_world = 10 .*{NWORLD} worlds.*naconmax = {10 * NWORLD - 1}"):
+      sf.collision(pile.m, d)
+  finally:
+    sf.uninstall(pile.m)
+    sf.install(pile.mjm, pile.m)
+
+
+def test_contacts_per_world_refuses_sleeping(pile):
+  """A sleeping step's second pass appends to the first pass's contacts, which the quota packs:
+  install refuses the combination, and so does a collision after sleeping was enabled."""
+  mjm = sleep_model(True, 1e-2)
+  with pytest.raises(ValueError, match="contacts_per_world does not work with sleeping"):
+    sf.install(mjm, mjw.put_model(mjm), sf.Options(contacts_per_world=8))
+  sf.uninstall(pile.m)
+  saved = pile.m.opt.enableflags
+  try:
+    sf.install(pile.mjm, pile.m, sf.Options(contacts_per_world=8))
+    pile.m.opt.enableflags = saved | int(mjw.EnableBit.SLEEP)
+    with pytest.raises(ValueError, match="contacts_per_world does not work with sleeping"):
+      sf.collision(pile.m, mjw.make_data(pile.mjm, nworld=NWORLD))
+  finally:
+    pile.m.opt.enableflags = saved
+    sf.uninstall(pile.m)
+    sf.install(pile.mjm, pile.m)
+
+
 # --- 3. overflow ----------------------------------------------------------------------------------
 
 CANARY = {float: 1234.5, int: -777}
@@ -612,10 +724,13 @@ def interleave(keys: np.ndarray, rng) -> np.ndarray:
   return out
 
 
-def test_graph_capture_deterministic_contacts():
+@pytest.mark.parametrize("contacts_per_world", [0, 64])
+def test_graph_capture_deterministic_contacts(contacts_per_world):
   """With all of MuJoCo Warp's determinism bits: the same states in give bitwise the same
   contacts, in the same order, uncaptured and replayed from a graph (a CUDA graph on a GPU,
-  Warp's CPU graph otherwise), and again after a reset, ten times over.
+  Warp's CPU graph otherwise), and again after a reset, ten times over; with the shared buffer
+  and with rows per world (room for all: which contacts a world past its rows keeps is not
+  deterministic on a GPU).
 
   The states are fed in rather than stepped to: MuJoCo Warp's own step is not bitwise
   repeatable on a GPU (benchmarks/determinism.py measured qpos 1e-7 apart after one step on an
@@ -624,9 +739,10 @@ def test_graph_capture_deterministic_contacts():
   with wp.ScopedDevice(wp.get_device()):
     sim = load("convex_pile", nworld=nworld)
     m = sim.m
-    sf.install(sim.mjm, m)
+    sf.install(sim.mjm, m, sf.Options(contacts_per_world=contacts_per_world))
     m.opt.deterministic = DeterminismType.ALL
-    d_traj, d_ref, d_cap = (mjw.make_data(sim.mjm, nworld=nworld) for _ in range(3))
+    naconmax = nworld * contacts_per_world if contacts_per_world else None
+    d_traj, d_ref, d_cap = (mjw.make_data(sim.mjm, nworld=nworld, naconmax=naconmax) for _ in range(3))
     states = []
     for _ in range(5):
       mjw.step(m, d_traj)
@@ -649,6 +765,7 @@ def test_graph_capture_deterministic_contacts():
         wp.synchronize()
         ref, cap = all_contacts(d_ref), all_contacts(d_cap)
         assert len(ref["dist"]) > 0 and same_arrays(ref, cap)
+        assert not d_cap.overflow.numpy().any()
         run.append(cap)
       runs.append(run)
     assert all(same_arrays(a, b) for run in runs[1:] for a, b in zip(runs[0], run))

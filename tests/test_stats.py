@@ -34,6 +34,14 @@ def test_summary_is_short_at_scale():
   assert "\n" not in repr(s) and "dropped_pairs=9" in repr(s) and "nonfinite_worlds=4" in repr(s)
 
 
+def test_summary_names_the_worlds_past_their_contact_rows():
+  per_world = [0] * 8192
+  per_world[3], per_world[9] = 5, 7
+  text = str(_stats(dropped_contacts=12, dropped_contacts_per_world=per_world))
+  assert "dropped contacts: 12, 12 of them in 2 worlds past their rows (most: world 9: 7, world 3: 5)" in text
+  assert "contacts_per_world" in text
+
+
 def test_still_the_dict_of_raw_counters():
   s = _stats(nworld=4)
   assert isinstance(s, dict) and s["pairs_per_world"] == [3, 3, 3, 3]

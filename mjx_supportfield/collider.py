@@ -156,6 +156,13 @@ def start_collision(
     warmstart.advance_stamp(warm_stamp, warm_misses)
 
 
+# the contact fields the plugin's writers take (Collider._contact_outputs, in that order)
+_WRITTEN_CONTACT_FIELDS = (
+  "dist", "pos", "frame", "includemargin", "friction", "solref", "solreffriction", "solimp", "dim", "geom",
+  "efc_address", "worldid", "type", "geomcollisionid", "adhesion",
+)  # fmt: skip
+
+
 class Collider:
   """Everything the plugin built for one MuJoCo Warp model (see ``install``)."""
 
@@ -262,6 +269,11 @@ class Collider:
     if d.qpos.device != self.device:
       raise ValueError(f"mjx_supportfield: Data is on {d.qpos.device} but the model it steps with was installed on"
                        f" {self.device}; make both on one device (wp.ScopedDevice)")
+    # the contact writers address rows through pointers (contact_quota.world_rows)
+    for field in _WRITTEN_CONTACT_FIELDS:
+      if not getattr(d.contact, field).is_contiguous:
+        raise ValueError(f"mjx_supportfield: Data.contact.{field} is not contiguous; make the Data with"
+                         " mjw.make_data or mjw.put_data")
 
   def _make_state(self, d) -> DataState:
     nworld = d.nworld
@@ -450,9 +462,7 @@ class Collider:
     )
 
   def _contact_outputs(self, d):
-    c = d.contact
-    return [c.dist, c.pos, c.frame, c.includemargin, c.friction, c.solref, c.solreffriction, c.solimp, c.dim, c.geom,
-            c.efc_address, c.worldid, c.type, c.geomcollisionid, c.adhesion, d.nacon]
+    return [getattr(d.contact, f) for f in _WRITTEN_CONTACT_FIELDS] + [d.nacon]
 
   def _narrowphase(self, m, d, st: DataState):
     quota = st.quota.quota

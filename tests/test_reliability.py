@@ -200,6 +200,18 @@ def test_data_of_another_model_names_the_field():
   assert contacts(sim.d, 0).n == 0  # the cube hangs 0.25 m above the floor
 
 
+def test_strided_contact_array_is_refused_naming_it():
+  """The contact writers address rows through pointers: a Data whose contact array is a strided
+  view (not what make_data or put_data make) is refused at its first collision, naming the field,
+  instead of having rows written past the view."""
+  sim = load("convex_pile", nworld=2)
+  sf.install(sim.mjm, sim.m)
+  dist = sim.d.contact.dist
+  sim.d.contact.dist = wp.zeros(2 * dist.shape[0], dtype=float, device=dist.device)[::2]
+  with pytest.raises(ValueError, match=r"Data\.contact\.dist is not contiguous"):
+    mjw.collision(sim.m, sim.d)
+
+
 # --- degenerate meshes MuJoCo accepts, zero sizes, extreme scales ---------------------------------
 
 # static degenerate hulls, 0.5 m apart along x; a free cube probe overlaps each by 1 mm

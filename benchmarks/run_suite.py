@@ -38,6 +38,7 @@ sys.path.insert(0, HERE)
 import make_scenes  # noqa: E402
 
 from mjx_supportfield import bench  # noqa: E402
+from mjx_supportfield import broadphase  # noqa: E402
 from mjx_supportfield.install import get_collider  # noqa: E402
 from mjx_supportfield.install import install  # noqa: E402
 from mjx_supportfield.options import Options  # noqa: E402
@@ -90,13 +91,13 @@ def broadphase_ms(path: str, nworld: int, launches: int) -> list[dict]:
     st = collider.state(m, d)
 
     def run():
-      for counter in (st.world_npair, st.npair, st.nwarned, st.queue_count):  # the counters the broad phase adds to
+      for counter in (st.broad.world_npair, st.broad.npair, st.broad.nwarned, st.narrow.queue_count):  # the counters the broad phase adds to
         counter.zero_()
-      collider._broadphase(m, d, st, None)
+      broadphase.launch(collider, m, d, st.broad, st.narrow.queues, None)
 
     ms = bench._time_graph(run, launches)
     rows.append({"ngeom": mjm.ngeom, "nworld": nworld, "broadphase": mode, "ms": ms,
-                 "pairs_per_world": int(st.npair.numpy()[0]) / nworld})
+                 "pairs_per_world": int(st.broad.npair.numpy()[0]) / nworld})
   return rows
 
 

@@ -16,16 +16,24 @@ Two ways, chosen at install (``Options.broadphase``):
 
 Both apply the sleep rules and MuJoCo Warp's own bounding filters (plane, sphere, AABB, OBB
 per ``m.opt.broadphase_filter``).
+
+This module owns the broad phase's kernels, its per-Data buffers (``Buffers``, ``make_buffers``)
+and its host entry, ``launch``: the geoms' boxes (aabb.py's kernel), then nxn or the sweep, then
+the compacted pair list and the narrow-phase queues.
 """
 
+import dataclasses
 import functools
 
 import warp as wp
+from mujoco_warp._src.collision_core import CollisionContext
 from mujoco_warp._src.collision_driver import _broadphase_filter
 from mujoco_warp._src.math import upper_tri_index
+from mujoco_warp._src.types import EnableBit
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import SleepState
 
+from mjx_supportfield.aabb import update_aabbs
 from mjx_supportfield.narrowphase import PairQueues
 from mjx_supportfield.narrowphase import queue_pair
 
@@ -449,3 +457,130 @@ def compact_pairs(
   out.pairid[cid] = pairid
   out.pair_worldid[cid] = worldid
   queue_pair(geom_type, pair, cid, queues)
+
+
+@dataclasses.dataclass
+class Buffers:
+  """The broad phase's per-Data buffers: sizes depend on nworld, which install cannot know."""
+
+  aabb_lo: wp.array
+  aabb_hi: wp.array
+  nonfinite: wp.array  # per world: 1 if a geom pose held NaN/inf this step
+  sap_init: wp.array
+  order: wp.array
+  world_npair: wp.array
+  npair: wp.array
+  ndropped: wp.array
+  nwarned: wp.array
+  slot_pair: wp.array  # per-world slots written by the sweep (a placeholder with nxn)
+  slot_pairid: wp.array
+  world_count: wp.array
+  world_start: wp.array
+  pair: wp.array  # the compacted pair list, worlds back to back
+  pairid: wp.array
+  pair_worldid: wp.array
+  stock_ctx: CollisionContext  # the pairs left to MuJoCo Warp's own narrow phase
+  capacity: int
+  outputs: PairOutputs  # the arrays above (and d's overflow, ncollision) for the kernels
+
+
+def make_buffers(c, d) -> Buffers:
+  """The broad phase's buffers for Data ``d`` of the model Collider ``c`` was installed on."""
+  nworld = d.nworld
+  capacity = nworld * c.max_pairs
+  # the sweep's per-world slots; nxn lists pairs directly (aloha_pot: 2 x 268 MB saved at 8192 worlds)
+  nslot = 1 if c.nxn else capacity
+  b = Buffers(
+    aabb_lo=wp.zeros((nworld, c.ngeom), dtype=wp.vec3),
+    aabb_hi=wp.zeros((nworld, c.ngeom), dtype=wp.vec3),
+    nonfinite=wp.zeros(nworld, dtype=int),
+    sap_init=wp.zeros(nworld, dtype=int),
+    order=wp.zeros((nworld, max(c.ngeom, 1)), dtype=int),
+    world_npair=wp.zeros(nworld, dtype=int),
+    npair=wp.zeros(1, dtype=int),
+    ndropped=wp.zeros(nworld, dtype=int),
+    nwarned=wp.zeros(1, dtype=int),
+    slot_pair=wp.zeros(nslot, dtype=wp.vec2i),
+    slot_pairid=wp.zeros(nslot, dtype=wp.vec2i),
+    world_count=wp.zeros(nworld, dtype=int),
+    world_start=wp.zeros(nworld, dtype=int),
+    pair=wp.zeros(capacity, dtype=wp.vec2i),
+    pairid=wp.zeros(capacity, dtype=wp.vec2i),
+    pair_worldid=wp.zeros(capacity, dtype=int),
+    stock_ctx=CollisionContext(
+      collision_pair=wp.zeros(d.naconmax, dtype=wp.vec2i),
+      collision_pairid=wp.zeros(d.naconmax, dtype=wp.vec2i),
+      collision_worldid=wp.zeros(d.naconmax, dtype=int),
+    ),
+    capacity=capacity,
+    outputs=PairOutputs(),
+  )
+  out = b.outputs
+  out.world_npair, out.slot_pair, out.slot_pairid = b.world_npair, b.slot_pair, b.slot_pairid
+  out.ndropped, out.nwarned, out.overflow, out.ncollision = b.ndropped, b.nwarned, d.overflow, d.ncollision
+  out.stock_pair = b.stock_ctx.collision_pair
+  out.stock_pairid = b.stock_ctx.collision_pairid
+  out.stock_worldid = b.stock_ctx.collision_worldid
+  out.npair, out.pair, out.pairid, out.pair_worldid = b.npair, b.pair, b.pairid, b.pair_worldid
+  return b
+
+
+def launch(c, m, d, b: Buffers, queues: PairQueues, awake_prev):
+  """The broad phase of one step: boxes, then nxn or the sweep (and the listed pairs), then the
+  compacted pair list, its pairs dealt out to ``queues`` (``c``: the installed Collider)."""
+  wp.launch(
+    update_aabbs,
+    dim=(d.nworld, c.ngeom),
+    inputs=[m.geom_type, m.geom_dataid, m.geom_aabb, m.geom_margin, m.geom_gap, d.geom_xpos, d.geom_xmat],
+    outputs=[b.aabb_lo, b.aabb_hi, b.nonfinite],
+  )
+  enable_sleep = bool(m.opt.enableflags & EnableBit.SLEEP)
+  incremental = awake_prev is not None
+  key = (
+    int(m.opt.broadphase_filter),
+    m.geom_aabb.shape[0],
+    m.geom_rbound.shape[0],
+    m.geom_margin.shape[0],
+    m.geom_gap.shape[0],
+    m.pair_margin.shape[0],
+    m.pair_gap.shape[0],
+    enable_sleep,
+    incremental,
+  )
+  awake_prev_in = awake_prev if incremental else d.body_awake
+  warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
+  common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                  m.pair_gap]
+  common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, c.geom_stock, b.aabb_lo,
+                 b.aabb_hi]
+
+  def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
+    wp.launch(
+      listed_pairs_kernel(key, direct),
+      dim=(d.nworld, npair),
+      inputs=common_model + common_data + [pairs, pairids, c.max_pairs, warn],
+      outputs=[b.outputs, queues],
+    )
+
+  if c.nxn:
+    listed(True, m.nxn_geom_pair_filtered, m.nxn_pairid_filtered, c.npair_filtered)
+    return
+  if c.ngeom > 1:
+    wp.launch(sort_endpoints, dim=d.nworld, inputs=[c.ngeom, c.options.sap_axis, b.aabb_lo],
+              outputs=[b.sap_init, b.order])
+    wp.launch(
+      sweep_kernel(key, c.options.sap_axis),
+      dim=(d.nworld, c.ngeom),
+      inputs=[c.ngeom] + common_model + [m.nxn_pairid] + common_data + [c.max_pairs, warn, b.order],
+      outputs=[b.outputs],
+    )
+  if c.nexplicit:
+    listed(False, c.explicit_pair, c.explicit_pairid, c.nexplicit)
+  wp.launch(clamp_counts, dim=d.nworld, inputs=[c.max_pairs, b.world_npair], outputs=[b.world_count])
+  wp.utils.array_scan(b.world_count, b.world_start, inclusive=False)
+  wp.launch(
+    compact_pairs,
+    dim=(d.nworld, c.max_pairs),
+    inputs=[m.geom_type, c.max_pairs, b.world_count, b.world_start],
+    outputs=[b.outputs, queues],
+  )

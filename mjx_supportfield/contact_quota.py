@@ -10,6 +10,9 @@ its quota loses its own contacts only. After the narrow phase the rows are packe
 (world by world, each world's rows in the order they were written) and ``d.nacon`` counts them.
 
 With N = 0 the views are the whole arrays and the counter is ``d.nacon``: one code path.
+
+This module owns the quota's kernels, its per-Data buffers (``make_buffers``) and its host entries
+(``start`` before the writers, ``pack`` after them), and names the contact fields the writers take.
 """
 
 import dataclasses
@@ -123,6 +126,18 @@ def make_buffers(nworld: int, per_world: int) -> QuotaBuffers:
   quota.world_ncon = wp.zeros(n, dtype=int)
   return QuotaBuffers(quota=quota, world_kept=wp.zeros(n, dtype=int), world_start=wp.zeros(n, dtype=int),
                       stock_dropped=wp.zeros(1, dtype=int), nwarned=wp.zeros(1, dtype=int))
+
+
+# the contact fields the plugin's writers take (contact_outputs, in that order)
+WRITTEN_CONTACT_FIELDS = (
+  "dist", "pos", "frame", "includemargin", "friction", "solref", "solreffriction", "solimp", "dim", "geom",
+  "efc_address", "worldid", "type", "geomcollisionid", "adhesion",
+)  # fmt: skip
+
+
+def contact_outputs(d) -> list:
+  """The contact arrays and counter the plugin's writers take, in their kernels' order."""
+  return [getattr(d.contact, f) for f in WRITTEN_CONTACT_FIELDS] + [d.nacon]
 
 
 def check_fits(per_world: int, nworld: int, naconmax: int) -> None:
@@ -246,6 +261,12 @@ def _packed_count(
 ):
   nworld = world_kept.shape[0]
   nacon[0] = world_start[nworld - 1] + world_kept[nworld - 1] + wp.min(nacon[0], naconmax) - nworld * per_world
+
+
+def start(d, buf: QuotaBuffers, per_world: int) -> None:
+  """Empties each world's rows before the step's writers run (per_world > 0)."""
+  wp.launch(start_worlds, dim=d.nworld, inputs=[per_world],
+            outputs=[d.nacon, buf.quota.world_ncon, buf.stock_dropped, buf.nwarned])
 
 
 def pack(d, buf: QuotaBuffers, warn: bool) -> None:

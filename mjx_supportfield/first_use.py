@@ -8,7 +8,7 @@ its default log level, a line per module afterwards). So the plugin writes notes
 ``mjx_supportfield`` at INFO, from ``install`` to the end of each installed model's first step::
 
   first use on cpu: Warp compiles 9 kernel modules for the plugin's first collision (roughly 45 s) ...
-    [1/9] mjx_supportfield.collider
+    [1/9] mjx_supportfield.stage_ends
     ...
     9 modules compiled in 37 s; later runs load them from Warp's kernel cache
 

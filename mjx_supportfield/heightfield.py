@@ -40,8 +40,15 @@ is, and a geom lying on rough terrain rests on all of them, not on the few that 
 (``max_contacts`` = 1 still writes one). A geom over
 more than MAX_CELLS cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD``
 (with a printed warning unless ``m.opt.warn_overflow`` clears it).
+
+This module owns the heightfield stage's kernels, its install-time check (``check_model``), its
+per-Data buffers (``Buffers``, ``make_buffers``) and its host entry, ``launch``.
 """
 
+import dataclasses
+
+import mujoco
+import numpy as np
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
@@ -57,12 +64,15 @@ from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.contact_quota import contact_outputs
+from mjx_supportfield.narrowphase import GRID_THREADS
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
 from mjx_supportfield.narrowphase import NGEOMTYPE
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.support import box_corner
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import support_world
+from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -977,3 +987,97 @@ def hfield_contacts(
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
       contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
     )
+
+
+def check_model(mjm: mujoco.MjModel) -> None:
+  """Heightfields need a grid of at least 2 x 2 samples and positive sizes (the cell size divides)."""
+  for g in np.nonzero(np.asarray(mjm.geom_type) == GeomType.HFIELD)[0]:
+    hf = int(mjm.geom_dataid[g])
+    nrow, ncol, size = int(mjm.hfield_nrow[hf]), int(mjm.hfield_ncol[hf]), np.asarray(mjm.hfield_size[hf])
+    name = mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, int(g)) or f"geom {g}"
+    if nrow < 2 or ncol < 2:
+      raise ValueError(f"install: geom '{name}': heightfield {hf} has {nrow} rows and {ncol} columns; at least 2 of each"
+                       " are needed")
+    if not (np.all(np.isfinite(size)) and size[0] > 0 and size[1] > 0 and size[2] >= 0 and size[3] >= 0):
+      raise ValueError(f"install: geom '{name}': heightfield {hf} has size {size.tolist()}; x and y radii must be"
+                       " positive, elevation and base non-negative")
+
+
+@dataclasses.dataclass
+class Buffers:
+  """The heightfield stage's per-Data buffers."""
+
+  count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind (COUNT_*)
+  pair: wp.array  # (pairs) TerrainPair
+  job: wp.array  # (MPRs) the MPR queue: (index into pair, cell * NJOB + job)
+  kind_next: wp.array  # (NKIND) next place of each kind of job in order
+  order: wp.array  # (MPRs) the queue's jobs grouped by kind, the order hfield_mpr runs them in
+  answer: wp.array  # (MPRs) each MPR's point and depth
+  normal: wp.array  # (MPRs) and normal
+
+
+def make_buffers(c, nworld: int) -> Buffers:
+  """The heightfield stage's buffers for ``nworld`` worlds (``c``: the Collider)."""
+  npair = max(1, nworld * c.hfield_pairs_per_world)
+  nmpr = npair * c.options.hfield_mprs_per_pair if c.hfield_pairs_per_world else 1
+  return Buffers(
+    count=wp.zeros(COUNT_KIND + NKIND, dtype=int),
+    kind_next=wp.zeros(NKIND, dtype=int),
+    order=wp.zeros(nmpr, dtype=int),
+    pair=wp.zeros(npair, dtype=TerrainPair),
+    job=wp.zeros(nmpr, dtype=wp.vec2i),
+    answer=wp.zeros(nmpr, dtype=wp.vec4),
+    normal=wp.zeros(nmpr, dtype=wp.vec3),
+  )
+
+
+def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
+  """Heightfield - convex pairs of one step: windows and MPR queue, the queue grouped by kind,
+  the queued MPRs, then the contacts (``c``: the Collider; ``pairs``: the broad phase's buffers)."""
+  if not c.has_hfield_pairs:
+    return
+  opt = c.options
+  nthread = max(1, min(pairs.capacity, GRID_THREADS))
+  mode = SUPPORT_MODE_ID[opt.support_mode]
+  warn = int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD)))
+  hfield = [m.hfield_size, m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data]
+  wp.launch(
+    hfield_jobs,
+    dim=nthread,
+    inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_margin, m.geom_gap] + hfield
+    + [m.pair_margin, m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, mode, pairs.npair, pairs.pair,
+       pairs.pairid, pairs.pair_worldid, 2, nthread],
+    outputs=[d.overflow, b.count, b.pair, b.job],
+  )
+  nthread_pair = max(1, min(b.pair.shape[0], GRID_THREADS))
+  wp.launch(hfield_kind_start, dim=1, inputs=[b.count], outputs=[b.kind_next])
+  wp.launch(
+    hfield_order,
+    dim=nthread_pair,
+    inputs=[m.geom_type, pairs.pair, b.count, b.pair, b.job, nthread_pair],
+    outputs=[b.kind_next, b.order],
+  )
+  nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
+  wp.launch(
+    hfield_mpr,
+    dim=nthread_mpr,
+    inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
+    + [d.geom_xpos, d.geom_xmat, c.mesh_support, mode, opt.mpr_tolerance, opt.mpr_iterations,
+       opt.mpr_refine, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.order, nthread_mpr],
+    outputs=[b.answer, b.normal],
+  )
+  wp.launch(
+    hfield_contacts,
+    dim=nthread_pair,
+    inputs=[
+      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+      m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
+      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
+      m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, mode,
+      opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
+      opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid,
+      pairs.pair_worldid, b.count, b.pair, b.job, b.answer, b.normal,
+      nthread_pair, quota,
+    ],
+    outputs=[d.overflow] + contact_outputs(d),
+  )

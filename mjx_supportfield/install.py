@@ -10,13 +10,11 @@ from mujoco_warp._src import collision_driver
 from mujoco_warp._src import io as mjw_io
 
 from mjx_supportfield import first_use
-from mjx_supportfield import warmstart
-from mjx_supportfield.collider import _ATTR
-from mjx_supportfield.collider import _STATE_ATTR
 from mjx_supportfield.collider import Collider
 from mjx_supportfield.options import Options
 from mjx_supportfield.types import CONVEX_TYPES
 
+_ATTR = "_mjx_supportfield_collider"  # where a model keeps its Collider
 _STOCK_COLLISION = collision_driver.collision
 _STOCK_RESET = mjw_io.reset_data
 
@@ -70,20 +68,7 @@ def _reset_data(m, d, reset: Optional[wp.array] = None):
   """Stand-in for MuJoCo Warp's reset_data(): also drops the plugin's history of the reset worlds
   (warm-start normals, sweep-and-prune order), so a reset world repeats its run bit for bit."""
   _STOCK_RESET(m, d, reset)
-  states = getattr(d, _STATE_ATTR, None)
-  if not states:
-    return
-  if reset is not None and reset.dtype != wp.bool:
-    mask = wp.empty(d.nworld, dtype=bool, device=reset.device)
-    wp.utils.array_cast(reset, mask)
-    reset = mask
-  for st in list(states.values()):
-    if reset is None:
-      st.sap_init.zero_()
-      st.warm.slot_stamp.fill_(warmstart.NEVER)
-    else:
-      wp.launch(warmstart.forget_worlds, dim=st.warm.slot_stamp.shape, inputs=[reset],
-                outputs=[st.sap_init, st.warm.slot_stamp], device=st.sap_init.device)
+  Collider.reset_worlds(d, reset)
 
 
 def _patch():

@@ -2,10 +2,17 @@
 
 Both kernels walk the plugin's pair list with a grid-stride loop, so their launch size does
 not depend on the (host-unknown) number of pairs and they can be captured in a CUDA graph.
+
+This module owns the convex narrow phase's kernels (sift, analytic, MPR / GJK) and the
+multi-contact kernels that follow them (face pairs, manifolds, tilts, patches), their per-Data
+buffers (``Buffers``, ``make_buffers``) and their host entries, ``launch`` and
+``launch_multicontact``.
 """
 
+import dataclasses
 import functools
 
+import numpy as np
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
@@ -18,6 +25,7 @@ from mujoco_warp._src.types import vec5
 
 from mjx_supportfield import warmstart
 from mjx_supportfield.contact_quota import ContactQuota
+from mjx_supportfield.contact_quota import contact_outputs
 from mjx_supportfield.contact_quota import world_rows
 from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import BEHIND
@@ -44,6 +52,8 @@ from mjx_supportfield.multicontact import tilt_rotation
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import needs_sdf
 from mjx_supportfield.sdf import sdf_contact
+from mjx_supportfield.types import CONVEX_TYPES
+from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -61,6 +71,10 @@ NQUEUE = 4
 # which leaves 8 warps an SM to hide their memory latency; at 128 (16 warps) they spill a few
 # hundred bytes to the stack and still run faster (measured caps: docs/performance.md, "Register cap")
 HEAVY_REGISTERS = 128
+GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
+# multi-contact pairs per world left to the tilts (no face clipping) whose tilts run in parallel
+# threads (tilt_kernel); pairs beyond run them in patch_kernel's thread: same result, only slower
+TILT_PAIRS_PER_WORLD = 32
 
 
 @functools.lru_cache(maxsize=None)
@@ -1106,3 +1120,200 @@ def patch_kernel(
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
       contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
     )
+
+
+def pair_types_present(mjm, pairs) -> set:
+  """Ordered (type1 <= type2) geom-type pairs that the model can produce."""
+  types = set()
+  gt = np.asarray(mjm.geom_type)
+  for g1, g2 in pairs:
+    t1, t2 = sorted((int(gt[g1]), int(gt[g2])))
+    types.add((GeomType(t1), GeomType(t2)))
+  return types
+
+
+def pair_queue_table(present) -> tuple:
+  """The analytic and the MPR geom-type pairs among ``present`` (ordered pairs the model can
+  produce), and the table that maps a pair's types to its queue (see PairQueues)."""
+  analytic_types = tuple(t for t in ANALYTIC_PAIRS if t in present)
+  queue_table = np.full(NGEOMTYPE**2, -1, dtype=np.int32)
+  for t1, t2 in analytic_types:
+    queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_ANALYTIC
+  mpr_types = []
+  for t1, t2 in present:
+    if (t1, t2) not in ANALYTIC_PAIRS and t1 in CONVEX_TYPES and t2 in CONVEX_TYPES:
+      queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_MPR
+      mpr_types.append((t1, t2))
+  return analytic_types, mpr_types, queue_table
+
+
+@dataclasses.dataclass
+class Buffers:
+  """The narrow phase's per-Data buffers: its queues and the multi-contact queues."""
+
+  queue_count: wp.array  # pairs in each narrow-phase kernel's queue (queue_pair)
+  queue_pair: wp.array  # (NQUEUE, capacity) the queues: indices into the pair list
+  queues: PairQueues  # the two above, and what deciding a pair's queue needs
+  patch_count: wp.array  # pairs queued for multi-contact (face_pair_kernel)
+  patch_pair: wp.array
+  patch_result: wp.array
+  patch_pos: wp.array
+  face_count: wp.array  # of those, the pairs touching face on feature (manifold_kernel)
+  face_queue: wp.array  # their indices into patch_pair
+  face_faces: wp.array  # their faces (multicontact.face_pair)
+  tilt_pair_count: wp.array  # and the pairs left to the tilts (patch_kernel)
+  tilt_pair: wp.array  # their indices into patch_pair
+  tilt_result: wp.array  # (pairs left to the tilts, 8) the tilts' points, both attempts
+  tilt_count: wp.array  # tilts queued for MPR (tilt_mpr_kernel)
+  tilt_queue: wp.array  # their flat indices into tilt_result
+
+
+def make_buffers(c, nworld: int, capacity: int) -> Buffers:
+  """The narrow phase's buffers for ``nworld`` worlds of ``capacity`` pairs in all (``c``: the Collider)."""
+  ntilt_pair = min(capacity, nworld * TILT_PAIRS_PER_WORLD)
+  b = Buffers(
+    queue_count=wp.zeros(NQUEUE, dtype=int),
+    queue_pair=wp.zeros((NQUEUE, capacity), dtype=int),
+    queues=PairQueues(),
+    patch_count=wp.zeros(1, dtype=int),
+    patch_pair=wp.zeros(capacity, dtype=int),
+    patch_result=wp.zeros(capacity, dtype=wp.vec4),
+    patch_pos=wp.zeros(capacity, dtype=wp.vec3),
+    face_count=wp.zeros(1, dtype=int),
+    face_queue=wp.zeros(capacity, dtype=int),
+    face_faces=wp.zeros(capacity, dtype=wp.vec3i),
+    tilt_pair_count=wp.zeros(1, dtype=int),
+    tilt_pair=wp.zeros(capacity, dtype=int),
+    tilt_result=wp.zeros((ntilt_pair, 2 * NPERTURB), dtype=wp.vec4),
+    tilt_count=wp.zeros(1, dtype=int),
+    tilt_queue=wp.zeros(ntilt_pair * 2 * NPERTURB, dtype=int),
+  )
+  q = b.queues
+  q.pair_queue_type, q.geom_nonconvex = c.pair_queue_type, c.geom_nonconvex
+  q.gjk_all = int(c.options.narrowphase == "gjk")
+  q.count, q.pair = b.queue_count, b.queue_pair
+  return b
+
+
+def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: ContactQuota):
+  """The convex pairs of one step: MPR's candidates sifted, the analytic pairs, then MPR's and
+  GJK's pairs (``c``: the Collider; ``pairs``: the broad phase's buffers)."""
+  nthread = max(1, min(pairs.capacity, GRID_THREADS))
+  queue_inputs = [b.queue_count, b.queue_pair, pairs.pair, pairs.pairid, pairs.pair_worldid]  # + the launch's threads
+  # analytic pairs are cheap: as many threads as contacts fit, as stock MuJoCo Warp launches them
+  nthread_analytic = max(1, min(nthread, d.naconmax))
+  opt = c.options
+  gjk_all = opt.narrowphase == "gjk"
+  if c.mpr_types and not gjk_all:
+    wp.launch(
+      sift_mpr_pairs,
+      dim=nthread,
+      inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+              m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, SUPPORT_MODE_ID[opt.support_mode],
+              pairs.pair, pairs.pairid, pairs.pair_worldid, nthread],
+      outputs=[b.queues],
+    )
+  if c.analytic_types:
+    wp.launch(
+      analytic_kernel(c.analytic_types),
+      dim=nthread_analytic,
+      inputs=[
+        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+        m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.mesh_vertadr, m.mesh_vertnum,
+        m.mesh_graphadr, m.mesh_vert, m.mesh_graph, m.mesh_polynum, m.mesh_polyadr, m.mesh_polynormal,
+        m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
+        m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
+        m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
+      ] + queue_inputs + [nthread_analytic, quota],
+      outputs=contact_outputs(d),
+    )
+  if not c.mpr_types:
+    return
+  # MPR's pairs, then GJK's (all with narrowphase="gjk", else those with a sphere or capsule)
+  for use_gjk in (False, True):
+    if (use_gjk and not (gjk_all or c.has_core_pairs)) or (not use_gjk and gjk_all):
+      continue
+    wp.launch(
+      convex_kernel(use_gjk),
+      dim=nthread,
+      inputs=[
+        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
+        m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
+        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
+        SUPPORT_MODE_ID[opt.support_mode], opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
+        opt.max_contacts_per_pair if opt.multi_contact else 1, opt.mc_perturbation,
+        c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
+        warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses,
+      ] + queue_inputs + [nthread, quota],
+      outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos] + contact_outputs(d),
+    )
+
+
+def launch_multicontact(c, m, d, pairs, b: Buffers, quota: ContactQuota):
+  """The multi-contact pass over the pairs the MPR kernel queued: face pairs, face clipping, the
+  tilts and their MPRs, then each tilted pair's contacts (``c``: the Collider; ``pairs``: the
+  broad phase's buffers)."""
+  if not c.mpr_types:
+    return
+  opt = c.options
+  mode = SUPPORT_MODE_ID[opt.support_mode]
+  nthread = max(1, min(pairs.capacity, GRID_THREADS))
+  nthread_tilt = max(1, min(b.tilt_result.shape[0] * b.tilt_result.shape[1], GRID_THREADS))
+  pair, pairid, pair_worldid = pairs.pair, pairs.pairid, pairs.pair_worldid
+  wp.launch(
+    face_pair_kernel,
+    dim=nthread,
+    inputs=[
+      m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+      m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, mode,
+      pair, pairid, pair_worldid, b.patch_count, b.patch_pair, b.patch_result, nthread,
+    ],
+    outputs=[b.face_count, b.face_queue, b.face_faces, b.tilt_pair_count, b.tilt_pair],
+  )
+  wp.launch(
+    manifold_kernel,
+    dim=nthread,
+    inputs=[
+      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
+      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+      m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
+      opt.max_contacts_per_pair, opt.mc_tolerance, pair, pairid, pair_worldid,
+      b.patch_pair, b.patch_result, b.patch_pos, b.face_count, b.face_queue, b.face_faces, nthread,
+      quota,
+    ],
+    outputs=[b.tilt_pair_count, b.tilt_pair] + contact_outputs(d),
+  )
+  tilt_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, mode]
+  wp.launch(
+    tilt_kernel,
+    dim=nthread_tilt,
+    inputs=tilt_model + [opt.mc_perturbation, pair, pairid, pair_worldid, b.tilt_pair_count,
+                         b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos, nthread_tilt],
+    outputs=[b.tilt_result, b.tilt_count, b.tilt_queue],
+  )
+  wp.launch(
+    tilt_mpr_kernel,
+    dim=nthread_tilt,
+    inputs=tilt_model + [opt.mpr_tolerance, opt.mpr_iterations, opt.mc_perturbation,
+                         pair, pairid, pair_worldid, b.tilt_pair, b.patch_pair, b.patch_result,
+                         b.patch_pos, b.tilt_count, b.tilt_queue, nthread_tilt],
+    outputs=[b.tilt_result],
+  )
+  wp.launch(
+    patch_kernel,
+    dim=nthread,
+    inputs=[
+      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
+      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+      m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
+      mode, opt.mpr_tolerance, opt.mpr_iterations,
+      opt.max_contacts_per_pair, opt.mc_perturbation, opt.mc_tolerance, pair,
+      pairid, pair_worldid, b.tilt_pair_count, b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos,
+      b.tilt_result, nthread, quota,
+    ],
+    outputs=contact_outputs(d),
+  )

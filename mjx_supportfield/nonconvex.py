@@ -14,6 +14,9 @@ The other geom's SDF is its true mesh's when non-convex, its hull's when a conve
 closed form for primitives. Depth is the SDF value (less the radius), the normal its
 gradient; points merge and the deepest and farthest are written (candidates.py). Planes and
 heightfields meet a non-convex mesh through its hull, which touches them at the same points.
+
+This module owns the non-convex stage's install-time data (which geoms, their SDFs) and kernel,
+and its host entry, ``launch`` (no per-Data buffers: it walks the broad phase's pair list).
 """
 
 import warnings
@@ -30,12 +33,15 @@ from mjx_supportfield.candidates import add_candidate
 from mjx_supportfield.candidates import empty
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
+from mjx_supportfield.contact_quota import contact_outputs
+from mjx_supportfield.narrowphase import GRID_THREADS
 from mjx_supportfield.narrowphase import posed_shape
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import sample_point
 from mjx_supportfield.sdf import shape_sdf
 from mjx_supportfield.sdf import shape_sdf_grad
 from mjx_supportfield.support import box_corner
+from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -362,3 +368,25 @@ def nonconvex_narrowphase(
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
       contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
     )
+
+
+def launch(c, m, d, pairs, quota: ContactQuota):
+  """The non-convex pairs of one step (``c``: the Collider; ``pairs``: the broad phase's buffers)."""
+  if not c.has_nonconvex_pairs:
+    return
+  opt = c.options
+  nthread = max(1, min(pairs.capacity, GRID_THREADS))
+  pair_inputs = [pairs.npair, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread]
+  wp.launch(
+    nonconvex_narrowphase,
+    dim=nthread,
+    inputs=[
+      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+      m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.mesh_vertnum,
+      c.mesh_faceadr, c.mesh_facenum, m.mesh_face, m.pair_dim, m.pair_solref, m.pair_solreffriction,
+      m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat,
+      d.naconmax, c.mesh_support, c.geom_nonconvex, c.sdfs, SUPPORT_MODE_ID[opt.support_mode],
+      opt.max_contacts_per_pair, opt.mc_tolerance,
+    ] + pair_inputs + [quota],
+    outputs=contact_outputs(d),
+  )

@@ -1,4 +1,9 @@
-"""What ``Collider.stats(d)`` returns: the counters of the last collision, readable at any nworld."""
+"""What ``Collider.stats(d)`` returns: the counters of the last collision, readable at any nworld.
+
+This module owns the host-side read of the stages' counters (``collect``) and their summary.
+"""
+
+import numpy as np
 
 
 class CollisionStats(dict):
@@ -79,6 +84,41 @@ class CollisionStats(dict):
       "hfield_mprs_unqueued": self["hfield_mprs_unqueued"],
     }
     return f"CollisionStats({', '.join(f'{k}={v}' for k, v in totals.items())})"
+
+
+def collect(c, d, st) -> CollisionStats:
+  """The counters of the last collision on ``d`` from Collider ``c``'s per-Data state ``st`` (None
+  before the first collision); reads the device."""
+  if st is None:
+    return CollisionStats({"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
+                           "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
+                           "hfield_mprs_unqueued": 0})
+  from mjx_supportfield.heightfield import COUNT_UNQUEUED  # the heightfield module builds kernels on import
+
+  broad = st.broad
+  return CollisionStats({
+    "pairs": int(broad.npair.numpy()[0]),
+    "pairs_per_world": np.minimum(broad.world_npair.numpy(), c.max_pairs).tolist(),
+    "dropped_pairs_per_world": broad.ndropped.numpy().tolist(),
+    "nonfinite_worlds": np.nonzero(broad.nonfinite.numpy())[0].tolist(),
+    **_dropped_contacts(c, d, st),
+    "warm_start_misses": int(st.warm.misses.numpy()[0]) if c.options.warm_start else 0,
+    # terrain MPRs that found the heightfield queue full and ran in their pair's thread
+    "hfield_mprs_unqueued": int(st.hfield.count.numpy()[COUNT_UNQUEUED]),
+  })
+
+
+def _dropped_contacts(c, d, st) -> dict:
+  """Contacts found but not stored: beyond naconmax (mjw.step flags OverflowType.NARROWPHASE) or,
+  with contacts_per_world, beyond a world's rows (flagged in that world)."""
+  per_world = c.options.contacts_per_world
+  if not per_world:
+    return {"dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
+            "dropped_contacts_per_world": [0] * d.nworld}
+  q = st.quota
+  per_world_dropped = np.maximum(q.quota.world_ncon.numpy() - per_world, 0)
+  return {"dropped_contacts": int(per_world_dropped.sum()) + int(q.stock_dropped.numpy()[0]),
+          "dropped_contacts_per_world": per_world_dropped.tolist()}
 
 
 def _worst(per_world: list, count: int) -> str:

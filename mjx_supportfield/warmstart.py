@@ -8,6 +8,9 @@ Within one call, lookups and inserts run concurrently. An insert may claim only 
 stamp is two or more calls old; a lookup walks past slots of the last two calls and of this
 one and stops at an older (or never used) slot, which cannot lie before the entry it looks for.
 A full table only means a cold start for the pairs that found no slot.
+
+This module owns the cache (``WarmCache``, ``make_cache``), its device functions, and the reset
+of chosen worlds' history (``forget``, with the broad phase's sweep order).
 """
 
 import dataclasses
@@ -115,3 +118,14 @@ def forget_worlds(reset: wp.array(dtype=bool), sap_init: wp.array(dtype=int), sl
   if slot == 0:
     sap_init[worldid] = 0
   slot_stamp[worldid, slot] = NEVER
+
+
+def forget(cache: WarmCache, sap_init: wp.array, reset=None) -> None:
+  """Drops the history of the worlds ``reset`` (a bool array, one a world) marks, of every world
+  when None: the cache's normals and the sweep-and-prune order kept in ``sap_init``."""
+  if reset is None:
+    sap_init.zero_()
+    cache.slot_stamp.fill_(NEVER)
+  else:
+    wp.launch(forget_worlds, dim=cache.slot_stamp.shape, inputs=[reset], outputs=[sap_init, cache.slot_stamp],
+              device=sap_init.device)

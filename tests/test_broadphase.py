@@ -21,7 +21,7 @@ NWORLD = 2
 
 def plugin_pairs(m, d):
   """{world: list of (g1, g2) as written} from the plugin's per-Data state."""
-  st = sf.get_collider(m).state(m, d)
+  st = sf.get_collider(m).state(m, d).broad
   n = int(st.npair.numpy()[0])
   assert 0 <= n <= st.capacity
   pair = st.pair.numpy()[:n].reshape(-1, 2)
@@ -296,9 +296,9 @@ def test_queues_deal_out_the_pair_list(scene, broadphase):
   set_qpos(sim, qpos)
   sf.collision(sim.m, sim.d)
   st = collider.state(sim.m, sim.d)
-  npair = int(st.npair.numpy()[0])
-  pair, worldid = st.pair.numpy()[:npair], st.pair_worldid.numpy()[:npair]
-  count, queued = st.queue_count.numpy(), st.queue_pair.numpy()
+  npair = int(st.broad.npair.numpy()[0])
+  pair, worldid = st.broad.pair.numpy()[:npair], st.broad.pair_worldid.numpy()[:npair]
+  count, queued = st.narrow.queue_count.numpy(), st.narrow.queue_pair.numpy()
   queue = {q: queued[q, : count[q]].tolist() for q in range(nph.NQUEUE)}
   for q, cids in queue.items():
     assert len(set(cids)) == len(cids) and all(0 <= c < npair for c in cids), f"queue {q}: {cids}"

@@ -11,7 +11,6 @@ from conftest import load_mjmodel
 
 import mujoco
 import mjx_supportfield as sf
-from mjx_supportfield import collider
 from mjx_supportfield import multicontact
 from mjx_supportfield import narrowphase
 from mjx_supportfield.mpr import BEHIND
@@ -238,7 +237,7 @@ def _queues(src, nworld=1):
   sim = load(src, nworld=nworld)
   sf.install(sim.mjm, sim.m)
   sf.collision(sim.m, sim.d)
-  st = sf.get_collider(sim.m).state(sim.m, sim.d)
+  st = sf.get_collider(sim.m).state(sim.m, sim.d).narrow
   return int(st.patch_count.numpy()[0]), int(st.tilt_pair_count.numpy()[0]), sim
 
 
@@ -279,7 +278,7 @@ def test_parallel_tilts_match_the_sequential_ones(monkeypatch, scene, per_world)
     sim = load(SCENES[scene], nworld=2)
     sf.install(sim.mjm, sim.m)
     sf.collision(sim.m, sim.d)
-    assert int(sf.get_collider(sim.m).state(sim.m, sim.d).tilt_pair_count.numpy()[0]) == 2
+    assert int(sf.get_collider(sim.m).state(sim.m, sim.d).narrow.tilt_pair_count.numpy()[0]) == 2
     n = int(sim.d.nacon.numpy()[0])
     c = sim.d.contact
     rows = np.concatenate([c.worldid.numpy()[:n, None], c.geom.numpy()[:n], c.dist.numpy()[:n, None],
@@ -287,7 +286,7 @@ def test_parallel_tilts_match_the_sequential_ones(monkeypatch, scene, per_world)
     return rows[np.lexsort(rows.T[::-1])]
 
   parallel = run()
-  monkeypatch.setattr(collider, "_TILT_PAIRS_PER_WORLD", per_world)
+  monkeypatch.setattr(narrowphase, "TILT_PAIRS_PER_WORLD", per_world)
   fewer = run()
   assert len(parallel) >= 2 * (2 if scene == "rollers" else 1)
   np.testing.assert_array_equal(fewer, parallel)
@@ -323,16 +322,17 @@ def _tilts_both_ways(sim):
   sf.collision(sim.m, sim.d)
   col = sf.get_collider(sim.m)
   st = col.state(sim.m, sim.d)
+  pairs, st = st.broad, st.narrow
   npatch = int(st.patch_count.numpy()[0])
   closed = wp.zeros((npatch, 8), dtype=wp.vec4)
   by_mpr = wp.zeros((npatch, 8), dtype=wp.vec4)
   m, d = sim.m, sim.d
   wp.launch(_both_tilts, dim=(npatch, 8),
             inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-                    m.pair_gap, d.geom_xpos, d.geom_xmat, col.mesh_support, col.options.mc_perturbation, st.pair,
-                    st.pairid, st.pair_worldid, st.patch_pair, st.patch_result, st.patch_pos],
+                    m.pair_gap, d.geom_xpos, d.geom_xmat, col.mesh_support, col.options.mc_perturbation, pairs.pair,
+                    pairs.pairid, pairs.pair_worldid, st.patch_pair, st.patch_result, st.patch_pos],
             outputs=[closed, by_mpr])
-  types = sim.mjm.geom_type[st.pair.numpy()[st.patch_pair.numpy()[:npatch]]]
+  types = sim.mjm.geom_type[pairs.pair.numpy()[st.patch_pair.numpy()[:npatch]]]
   flat = np.all((types == mujoco.mjtGeom.mjGEOM_BOX) | (types == mujoco.mjtGeom.mjGEOM_MESH), axis=1)
   return closed.numpy(), by_mpr.numpy(), flat
 

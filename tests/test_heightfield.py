@@ -213,6 +213,7 @@ def test_terrain_scene_matches_generator():
     assert f.read() == make_terrain.xml()
 
 
+@pytest.mark.slow
 def test_every_body_stays_on_the_terrain(dropped):
   sim, lowest = dropped
   assert np.all(np.isfinite(sim.d.qpos.numpy()))

@@ -111,6 +111,7 @@ STACK_XML = f"""
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("multi", [True, False])
 def test_stacked_meshes_rest(multi):
   """A mesh cube on a mesh cube and a cylinder on a box, stepped through mjw.step: with

@@ -180,6 +180,7 @@ def bowl_runs():
           "finite": bool(np.all(np.isfinite(sim.d.qpos.numpy())))}
 
 
+@pytest.mark.slow
 def test_ball_stays_in_the_bowl(bowl_runs):
   """Inside the rim (radius 8 cm) and resting on the inner bottom (1 cm thick shell, ball 1.5 cm)."""
   rel = bowl_runs["plugin"]

@@ -26,6 +26,7 @@ def _meta(d, ref):
           "versions": {}}
 
 
+@pytest.mark.slow
 def test_resume_continues_bitwise(tmp_path):
   """Without the plugin's warm start (the one cache a resume loses), N steps, a checkpoint, and N
   more steps from a fresh Data give the qpos of 2N steps in one go, bit for bit."""

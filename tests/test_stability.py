@@ -22,6 +22,8 @@ from conftest import ROOT
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 import stability  # noqa: E402
 
+pytestmark = pytest.mark.slow  # whole trajectories
+
 NSTEP = 2000
 SETTLE = 200
 PLANE_BODIES = ("box", "cylinder", "convex")

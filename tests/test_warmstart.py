@@ -153,6 +153,7 @@ def test_warm_start_point_lies_inside(runs):
   assert runs["misses"] == [0] * len(runs["misses"])
 
 
+@pytest.mark.slow
 def test_resting_pile_warm_starts_without_misses():
   """A settled pile's resting contacts are microns deep; warm starts must still land inside."""
   mjm = mujoco.MjModel.from_xml_path(os.path.join(SCENES, "pile_32_128.xml"))

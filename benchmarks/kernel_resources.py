@@ -25,6 +25,7 @@ import warp as wp
 
 from mjx_supportfield import broadphase
 from mjx_supportfield import heightfield
+from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
 from mjx_supportfield import nonconvex
 
@@ -43,9 +44,9 @@ def kernels() -> dict:
     "sift MPR pairs": narrowphase.sift_mpr_pairs,
     "convex (MPR)": narrowphase.convex_kernel(False),
     "convex (GJK/EPA)": narrowphase.convex_kernel(True),
-    "tilt (closed form)": narrowphase.tilt_kernel,
-    "tilt (MPR)": narrowphase.tilt_mpr_kernel,
-    "patch (multi-contact)": narrowphase.patch_kernel,
+    "tilt (closed form)": multicontact_pass.tilt_kernel,
+    "tilt (MPR)": multicontact_pass.tilt_mpr_kernel,
+    "patch (multi-contact)": multicontact_pass.patch_kernel,
     "heightfield jobs": heightfield.hfield_jobs,
     "heightfield MPR": heightfield.hfield_mpr,
     "heightfield contacts": heightfield.hfield_contacts,

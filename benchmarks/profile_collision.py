@@ -26,6 +26,7 @@ import mujoco_warp as mjw
 import warp as wp
 
 from mjx_supportfield import heightfield
+from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
 from mjx_supportfield.bench import settled_state
 from mjx_supportfield.install import install
@@ -47,23 +48,25 @@ def _register_cap(cap):
   if cap is None:
     yield
     return
-  names = ("convex_kernel", "tilt_kernel", "tilt_mpr_kernel", "patch_kernel")
-  saved = {name: getattr(narrowphase, name) for name in names}
+  saved_convex = narrowphase.convex_kernel
+  names = ("tilt_kernel", "tilt_mpr_kernel", "patch_kernel")
+  saved = {name: getattr(multicontact_pass, name) for name in names}
   saved_hfield_mpr = heightfield.hfield_mpr
 
   def capped(kernel):
     return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
 
-  narrowphase.convex_kernel = functools.lru_cache(maxsize=None)(lambda use_gjk: capped(saved["convex_kernel"](use_gjk)))
-  narrowphase.tilt_kernel = capped(saved["tilt_kernel"])
-  narrowphase.tilt_mpr_kernel = capped(saved["tilt_mpr_kernel"])
-  narrowphase.patch_kernel = capped(saved["patch_kernel"])
+  narrowphase.convex_kernel = functools.lru_cache(maxsize=None)(lambda use_gjk: capped(saved_convex(use_gjk)))
+  multicontact_pass.tilt_kernel = capped(saved["tilt_kernel"])
+  multicontact_pass.tilt_mpr_kernel = capped(saved["tilt_mpr_kernel"])
+  multicontact_pass.patch_kernel = capped(saved["patch_kernel"])
   heightfield.hfield_mpr = capped(saved_hfield_mpr)
   try:
     yield
   finally:
+    narrowphase.convex_kernel = saved_convex
     for name, kernel in saved.items():
-      setattr(narrowphase, name, kernel)
+      setattr(multicontact_pass, name, kernel)
     heightfield.hfield_mpr = saved_hfield_mpr
 
 

@@ -34,8 +34,8 @@ from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import SleepState
 
 from mjx_supportfield.aabb import update_aabbs
-from mjx_supportfield.narrowphase import PairQueues
-from mjx_supportfield.narrowphase import queue_pair
+from mjx_supportfield.routing import PairQueues
+from mjx_supportfield.routing import queue_pair
 
 
 @wp.struct

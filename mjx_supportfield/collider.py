@@ -1,9 +1,9 @@
 """The installed collision stage: the driver that runs the stages in pipeline order.
 
 Each stage module owns its kernels, its per-Data buffers and the function that launches them
-(``broadphase.launch``, ``narrowphase.launch`` and ``launch_multicontact``, ``heightfield.launch``,
-``nonconvex.launch``, ``contact_quota.start`` / ``pack``, ``contact_sort.sort_contacts``,
-``stage_ends``). This module holds the model-time data the stages read (``Collider``), the
+(``broadphase.launch``, ``narrowphase.launch``, ``multicontact_pass.launch_multicontact``,
+``heightfield.launch``, ``nonconvex.launch``, ``contact_quota.start`` / ``pack``,
+``contact_sort.sort_contacts``, ``stage_ends``). This module holds the model-time data the stages read (``Collider``), the
 per-Data state (``DataState``: one buffer set per stage) and the order of the calls; it launches
 no kernel of its own.
 """
@@ -26,8 +26,10 @@ from mjx_supportfield import broadphase
 from mjx_supportfield import contact_quota
 from mjx_supportfield import contact_sort
 from mjx_supportfield import heightfield
+from mjx_supportfield import multicontact_pass
 from mjx_supportfield import nonconvex
 from mjx_supportfield import narrowphase
+from mjx_supportfield import routing
 from mjx_supportfield import stage_ends
 from mjx_supportfield import warmstart
 from mjx_supportfield.options import NXN_MAX_PAIRS
@@ -83,14 +85,14 @@ class Collider:
       self.nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
       self.has_stock_pairs = bool(stock.any()) or bool((pairids[:, 1] >= 0).any())
 
-      present = narrowphase.pair_types_present(mjm, pairs)
-      self.analytic_types, self.mpr_types, queue_table = narrowphase.pair_queue_table(present)
+      present = routing.pair_types_present(mjm, pairs)
+      self.analytic_types, self.mpr_types, queue_table = routing.pair_queue_table(present)
       self.pair_queue_type = wp.array(queue_table, dtype=int)
       core = (GeomType.SPHERE, GeomType.CAPSULE)
       self.has_core_pairs = any(t1 in core or t2 in core for t1, t2 in self.mpr_types)
       self.has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
-      nmpr = int((queue_table[t1 * narrowphase.NGEOMTYPE + t2] == narrowphase.QUEUE_MPR).sum())
+      nmpr = int((queue_table[t1 * routing.NGEOMTYPE + t2] == routing.QUEUE_MPR).sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
       nhfield = int(((t1 == GeomType.HFIELD) & np.isin(t2, [int(t) for t in CONVEX_TYPES])).sum())
       self.hfield_pairs_per_world = min(nhfield, self.max_pairs)  # bounds the heightfield kernels' pairs
@@ -199,7 +201,7 @@ class Collider:
     quota = st.quota.quota
     broadphase.launch(self, m, d, st.broad, st.narrow.queues, awake_prev)
     narrowphase.launch(self, m, d, st.broad, st.narrow, st.warm, quota)
-    narrowphase.launch_multicontact(self, m, d, st.broad, st.narrow, quota)
+    multicontact_pass.launch_multicontact(self, m, d, st.broad, st.narrow, quota)
     heightfield.launch(self, m, d, st.broad, st.hfield, quota)
     nonconvex.launch(self, m, d, st.broad, quota)
     if self.has_stock_pairs:

@@ -3,16 +3,16 @@
 Both kernels walk the plugin's pair list with a grid-stride loop, so their launch size does
 not depend on the (host-unknown) number of pairs and they can be captured in a CUDA graph.
 
-This module owns the convex narrow phase's kernels (sift, analytic, MPR / GJK) and the
-multi-contact kernels that follow them (face pairs, manifolds, tilts, patches), their per-Data
-buffers (``Buffers``, ``make_buffers``) and their host entries, ``launch`` and
-``launch_multicontact``.
+This module owns the convex narrow phase's kernels (sift, analytic, MPR / GJK), the writer of
+an MPR pair's contacts (``write_pair_contacts``), the per-Data buffers of the narrow phase and
+of the multi-contact pass that follows it (``Buffers``, ``make_buffers``: the MPR kernel fills
+the multi-contact queues) and its host entry, ``launch``. Which queue a pair goes to is
+routing.py's; the multi-contact kernels are multicontact_pass.py's.
 """
 
 import dataclasses
 import functools
 
-import numpy as np
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
@@ -35,38 +35,24 @@ from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
 from mjx_supportfield.multicontact import NPERTURB
-from mjx_supportfield.multicontact import TILTS
 from mjx_supportfield.multicontact import TILT_GROWTH
-from mjx_supportfield.multicontact import UNKNOWN
 from mjx_supportfield.multicontact import Patch
-from mjx_supportfield.multicontact import clip_faces
-from mjx_supportfield.multicontact import face_pair
 from mjx_supportfield.multicontact import keep_first
-from mjx_supportfield.multicontact import manifold_dist
-from mjx_supportfield.multicontact import manifold_pos
 from mjx_supportfield.multicontact import patch_possible
-from mjx_supportfield.multicontact import perturbed_contacts
-from mjx_supportfield.multicontact import tilt_closed_form
-from mjx_supportfield.multicontact import tilt_mpr
-from mjx_supportfield.multicontact import tilt_rotation
+from mjx_supportfield.routing import NQUEUE
+from mjx_supportfield.routing import QUEUE_ANALYTIC
+from mjx_supportfield.routing import QUEUE_CANDIDATE
+from mjx_supportfield.routing import QUEUE_GJK
+from mjx_supportfield.routing import QUEUE_MPR
+from mjx_supportfield.routing import PairQueues
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import needs_sdf
 from mjx_supportfield.sdf import sdf_contact
-from mjx_supportfield.types import CONVEX_TYPES
+from mjx_supportfield.shapes import posed_pair
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
-from mjx_supportfield.types import Shape
 
-# pairs MuJoCo Warp solves in closed form (plane-*, sphere/capsule pairs, box-box, plane-mesh)
-ANALYTIC_PAIRS = tuple(_PRIMITIVE_COLLISIONS.keys())
 
-NGEOMTYPE = len(GeomType)
-# the narrow-phase kernels' pair queues (queue_pair)
-QUEUE_ANALYTIC = wp.constant(0)
-QUEUE_MPR = wp.constant(1)
-QUEUE_GJK = wp.constant(2)
-QUEUE_CANDIDATE = wp.constant(3)  # MPR pairs not yet tested for being apart (sift_mpr_pairs)
-NQUEUE = 4
 # register cap of the MPR, GJK and multi-contact kernels: uncapped they sit at 255 registers,
 # which leaves 8 warps an SM to hide their memory latency; at 128 (16 warps) they spill a few
 # hundred bytes to the stack and still run faster (measured caps: docs/performance.md, "Register cap")
@@ -249,54 +235,6 @@ def analytic_kernel(pair_types: tuple):
 
 
 @wp.func
-def posed_shape(
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  ms: MeshSupport,
-  geomid: int,
-  worldid: int,
-) -> Shape:
-  """Geom ``geomid`` of world ``worldid`` as a Shape (world frame, no inflation)."""
-  s = Shape()
-  s.gtype = geom_type[geomid]
-  s.pos = geom_xpos_in[worldid, geomid]
-  s.rot = geom_xmat_in[worldid, geomid]
-  s.size = geom_size[worldid % geom_size.shape[0], geomid]
-  s.mesh = -1
-  s.center = s.pos
-  s.inflate = 0.0
-  if s.gtype == GeomType.MESH:
-    s.mesh = geom_dataid[worldid % geom_dataid.shape[0], geomid]
-    s.center = s.pos + s.rot @ ms.hull_center[s.mesh]
-  return s
-
-
-@wp.func
-def posed_pair(
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  ms: MeshSupport,
-  band: float,
-  geoms: wp.vec2i,
-  worldid: int,
-):
-  """A pair as the narrow phase collides it: A grown by the margin band, B, and the pair's scale
-  (the sum of the bounding radii; thresholds are relative to it)."""
-  a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
-  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
-  a.inflate = band
-  rb = worldid % geom_rbound.shape[0]
-  return a, b, wp.max(geom_rbound[rb, geoms[0]] + geom_rbound[rb, geoms[1]], 1.0e-9)
-
-
-@wp.func
 def write_pair_contacts(
   res: MprResult,
   extra: Patch,
@@ -364,13 +302,6 @@ def write_pair_contacts(
 
 
 @wp.func
-def has_core(type1: int, type2: int) -> bool:
-  """Whether a pair has a sphere or capsule (a point or segment core grown by a radius)."""
-  return (type1 == GeomType.SPHERE or type1 == GeomType.CAPSULE or type2 == GeomType.SPHERE
-          or type2 == GeomType.CAPSULE)
-
-
-@wp.func
 def _apart(
   geom_type: wp.array(dtype=int),
   geom_dataid: wp.array2d(dtype=int),
@@ -393,49 +324,6 @@ def _apart(
   a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
                            wp.max(margin + gap, 0.0), geoms, worldid)
   return apart_along_centres(a, b, ms, support_mode, scale)
-
-
-@wp.struct
-class PairQueues:
-  """Where the broad phase deals out the pairs it lists: one queue per narrow-phase kernel.
-
-  ``pair_queue_type`` maps a pair's geom types (type1 * NGEOMTYPE + type2) to QUEUE_ANALYTIC or
-  QUEUE_MPR, else -1 (the heightfield and non-convex kernels, and stock MuJoCo Warp, walk the
-  whole list)."""
-
-  pair_queue_type: wp.array(dtype=int)
-  geom_nonconvex: wp.array(dtype=int)
-  gjk_all: int  # narrowphase="gjk": every convex non-analytic pair to GJK/EPA
-  count: wp.array(dtype=int)  # (NQUEUE,) pairs in each queue
-  pair: wp.array2d(dtype=int)  # (NQUEUE, capacity): indices into the pair list
-
-
-@wp.func
-def queue_pair(geom_type: wp.array(dtype=int), geoms: wp.vec2i, cid: int, queues: PairQueues):
-  """Queues pair ``cid`` of the list for its narrow-phase kernel, so the warps of each kernel
-  run only pairs of their own kind (in one pair list, a pile's mesh-plane pairs sat idle in the
-  MPR kernel's warps, between the mesh-mesh pairs).
-
-  A convex pair with a sphere or capsule goes to GJK (a point or segment core grown by a
-  radius: GJK gives the exact nearest points, where MPR's normal drifts for a small sphere sunk
-  deep), as do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py. The other
-  MPR pairs wait in QUEUE_CANDIDATE for sift_mpr_pairs. Cheap on purpose: the broad-phase
-  kernels that call it run a thread per (world, pair), and support queries here made those
-  threads heavy (aloha_pot's nxn kernel: 2.8 ms at 8192 worlds).
-  """
-  type1 = geom_type[geoms[0]]
-  type2 = geom_type[geoms[1]]
-  queue = queues.pair_queue_type[type1 * wp.static(NGEOMTYPE) + type2]
-  if queue == QUEUE_MPR:
-    if queues.geom_nonconvex[geoms[0]] or queues.geom_nonconvex[geoms[1]]:
-      return
-    if queues.gjk_all != 0 or has_core(type1, type2):
-      queue = QUEUE_GJK
-    else:
-      queue = QUEUE_CANDIDATE
-  if queue >= 0:
-    slot = wp.atomic_add(queues.count, queue, 1)
-    queues.pair[queue, slot] = cid
 
 
 @wp.kernel(enable_backward=False)
@@ -664,489 +552,6 @@ def convex_kernel(use_gjk: bool):
   return convex_narrowphase
 
 
-@wp.func
-def _queued_patch(
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  ms: MeshSupport,
-  band: float,
-  geoms: wp.vec2i,
-  worldid: int,
-  result: wp.vec4,
-  pos: wp.vec3,
-):
-  """A queued multi-contact pair: its shapes (A grown by the margin band), scale, and the first contact."""
-  a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
-                           geoms, worldid)
-  res = MprResult()
-  res.hit = 1
-  res.normal = wp.vec3(result[0], result[1], result[2])
-  res.depth = result[3]
-  res.pos = pos
-  return a, b, scale, res
-
-
-@wp.func
-def _queued_first(result: wp.vec4, pos: wp.vec3) -> MprResult:
-  """A queued multi-contact pair's first contact."""
-  res = MprResult()
-  res.hit = 1
-  res.normal = wp.vec3(result[0], result[1], result[2])
-  res.depth = result[3]
-  res.pos = pos
-  return res
-
-
-@wp.func
-def _queued_tilt(
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  ms: MeshSupport,
-  mc_perturbation: float,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  patch_pair: wp.array(dtype=int),
-  patch_result: wp.array(dtype=wp.vec4),
-  patch_pos: wp.array(dtype=wp.vec3),
-  i: int,
-  j: int,
-):
-  """Attempt j // NPERTURB of tilt j % NPERTURB of queued multi-contact pair i: its shapes,
-  scale, first contact and rotation."""
-  cid = patch_pair[i]
-  geoms = pair_in[cid]
-  worldid = pair_worldid_in[cid]
-  margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
-  a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
-                                   wp.max(margin + gap, 0.0), geoms, worldid, patch_result[i], patch_pos[i])
-  return a, b, scale, res, tilt_rotation(res.normal, mc_perturbation, j % NPERTURB, j // NPERTURB)
-
-
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
-def face_pair_kernel(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  patch_count: wp.array(dtype=int),
-  patch_pair: wp.array(dtype=int),
-  patch_result: wp.array(dtype=wp.vec4),
-  nthread: int,
-  # Out:
-  face_count: wp.array(dtype=int),
-  face_queue: wp.array(dtype=int),
-  face_faces: wp.array(dtype=wp.vec3i),
-  tilt_pair_count: wp.array(dtype=int),
-  tilt_pair: wp.array(dtype=int),
-):
-  """The pairs convex_narrowphase queued for multi-contact, one thread a pair: those touching
-  face on feature along the normal (multicontact.face_pair) are queued, with their faces, for
-  manifold_kernel; the rest (edge on edge, curved surfaces, polygons over budget), by their
-  index in the multi-contact queue, for the tilts (tilt_kernel, tilt_mpr_kernel, patch_kernel).
-  Apart from the clipping, so that the support queries here and the clipping's loops there do
-  not share one kernel's registers, and the clipping runs on dense warps of face pairs."""
-  tid = wp.tid()
-  for i in range(tid, patch_count[0], nthread):
-    cid = patch_pair[i]
-    geoms = pair_in[cid]
-    worldid = pair_worldid_in[cid]
-    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
-    a, b, _ = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
-                         wp.max(margin + gap, 0.0), geoms, worldid)
-    result = patch_result[i]
-    faces = face_pair(a, b, ms, support_mode, wp.vec3(result[0], result[1], result[2]))
-    if faces[0] < 0:
-      tilt_pair[wp.atomic_add(tilt_pair_count, 0, 1)] = i
-    else:
-      slot = wp.atomic_add(face_count, 0, 1)
-      face_queue[slot] = i
-      face_faces[slot] = faces
-
-
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
-def manifold_kernel(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_condim: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_priority: wp.array(dtype=int),
-  geom_solmix: wp.array2d(dtype=float),
-  geom_solref: wp.array2d(dtype=wp.vec2),
-  geom_solimp: wp.array2d(dtype=vec5),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_friction: wp.array2d(dtype=wp.vec3),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  geom_adhesion: wp.array2d(dtype=float),
-  geom_aabb: wp.array3d(dtype=wp.vec3),
-  pair_dim: wp.array(dtype=int),
-  pair_solref: wp.array2d(dtype=wp.vec2),
-  pair_solreffriction: wp.array2d(dtype=wp.vec2),
-  pair_solimp: wp.array2d(dtype=vec5),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  pair_adhesion: wp.array2d(dtype=float),
-  pair_friction: wp.array2d(dtype=vec5),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  naconmax_in: int,
-  # In:
-  ms: MeshSupport,
-  max_contacts: int,
-  mc_tolerance: float,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  patch_pair: wp.array(dtype=int),
-  patch_result: wp.array(dtype=wp.vec4),
-  patch_pos: wp.array(dtype=wp.vec3),
-  face_count: wp.array(dtype=int),
-  face_queue: wp.array(dtype=int),
-  face_faces: wp.array(dtype=wp.vec3i),
-  nthread: int,
-  quota: ContactQuota,
-  # Out:
-  tilt_pair_count: wp.array(dtype=int),
-  tilt_pair: wp.array(dtype=int),
-  # Data out:
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
-):
-  """The pairs face_pair_kernel queued for face clipping, one thread a pair: the faces it found
-  clipped (multicontact.clip_faces) give the contacts; a pair whose corners all lie above the
-  band goes on to the tilts after all."""
-  tid = wp.tid()
-  for s in range(tid, face_count[0], nthread):
-    i = face_queue[s]
-    cid = patch_pair[i]
-    geoms = pair_in[cid]
-    worldid = pair_worldid_in[cid]
-    # the contact parameters are read once the clipping is done: held through it, they took
-    # registers it needed
-    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
-    band = wp.max(margin + gap, 0.0)
-    a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
-                                     geoms, worldid, patch_result[i], patch_pos[i])
-    # duplicates: closer than mc_tolerance x the smaller geom's box size (as patch_kernel's)
-    ab = worldid % geom_aabb.shape[0]
-    size = 2.0 * wp.min(wp.length(geom_aabb[ab, geoms[0], 1]), wp.length(geom_aabb[ab, geoms[1], 1]))
-    found = clip_faces(a, b, ms, res, scale, max_contacts, mc_tolerance * size, face_faces[s])
-    # the pair read again, not held through the clipping
-    i = face_queue[s]
-    if found.status == TILTS:
-      tilt_pair[wp.atomic_add(tilt_pair_count, 0, 1)] = i
-      continue
-    cid = patch_pair[i]
-    geoms = pair_in[cid]
-    worldid = pair_worldid_in[cid]
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-      pair_friction, pair_in, pairid_in, cid, worldid,
-    )
-    band = wp.max(margin + gap, 0.0)
-    res = _queued_first(patch_result[i], patch_pos[i])
-    frame = make_frame(res.normal)
-    # the clipped corners lie in the reference shape's frame: its pose read again here, not held
-    # through the clipping
-    ref_geom = geoms[wp.where(found.ref_is_b, 1, 0)]
-    rot = geom_xmat_in[worldid, ref_geom]
-    shift = geom_xpos_in[worldid, ref_geom]
-    # the world's contact rows (Options.contacts_per_world), made once the clipping is done
-    (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-     rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
-     rows_nacon) = world_rows(
-      quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-      contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-      contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-      contact_adhesion_out, nacon_out,
-    )
-    for k in range(found.n):
-      pos = rot @ manifold_pos(found, k) + shift
-      if k == found.first:
-        pos = res.pos - 0.5 * band * res.normal
-      write_contact(
-        limit, k, manifold_dist(found, k), pos, frame, margin, gap,
-        condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, rows_dist,
-        rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-        rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address,
-        rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
-      )
-
-
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
-def tilt_kernel(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  mc_perturbation: float,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  tilt_pair_count: wp.array(dtype=int),
-  tilt_pair: wp.array(dtype=int),
-  patch_pair: wp.array(dtype=int),
-  patch_result: wp.array(dtype=wp.vec4),
-  patch_pos: wp.array(dtype=wp.vec3),
-  nthread: int,
-  # Out:
-  tilt_result: wp.array2d(dtype=wp.vec4),
-  tilt_count: wp.array(dtype=int),
-  tilt_queue: wp.array(dtype=int),
-):
-  """Both attempts of each of the four tilts of the pairs left to the tilts by face_pair_kernel
-  and manifold_kernel (row q of tilt_result: the q-th of them), one thread an attempt, in closed form
-  (multicontact.tilt_closed_form); the attempts it cannot answer are queued for tilt_mpr_kernel,
-  so the tilted MPRs run on dense warps. The steeper attempt is computed whether or not
-  patch_kernel's replay needs it: on the pile and on aloha_pot 84 % of the first attempts land
-  back on the first contact and need it."""
-  tid = wp.tid()
-  nattempt = 2 * NPERTURB
-  for j in range(tid, wp.min(tilt_pair_count[0], tilt_result.shape[0]) * nattempt, nthread):
-    q = j // nattempt
-    i = tilt_pair[q]
-    a, b, scale, res, rot = _queued_tilt(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap,
-                                         pair_margin, pair_gap, geom_xpos_in, geom_xmat_in, ms, mc_perturbation,
-                                         pair_in, pairid_in, pair_worldid_in, patch_pair, patch_result, patch_pos, i,
-                                         j % nattempt)
-    answer = tilt_closed_form(a, b, ms, support_mode, res, scale, rot)
-    tilt_result[q, j % nattempt] = answer
-    if answer[3] == UNKNOWN:
-      tilt_queue[wp.atomic_add(tilt_count, 0, 1)] = j
-
-
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
-def tilt_mpr_kernel(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  tolerance: float,
-  iterations: int,
-  mc_perturbation: float,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  tilt_pair: wp.array(dtype=int),
-  patch_pair: wp.array(dtype=int),
-  patch_result: wp.array(dtype=wp.vec4),
-  patch_pos: wp.array(dtype=wp.vec3),
-  tilt_count: wp.array(dtype=int),
-  tilt_queue: wp.array(dtype=int),
-  nthread: int,
-  # Out:
-  tilt_result: wp.array2d(dtype=wp.vec4),
-):
-  """The tilted MPRs of the attempts tilt_kernel queued (edge against edge, or a foot beside
-  the face), one thread an attempt."""
-  tid = wp.tid()
-  nattempt = 2 * NPERTURB
-  for s in range(tid, tilt_count[0], nthread):
-    j = tilt_queue[s]
-    q = j // nattempt
-    i = tilt_pair[q]
-    a, b, scale, res, rot = _queued_tilt(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap,
-                                         pair_margin, pair_gap, geom_xpos_in, geom_xmat_in, ms, mc_perturbation,
-                                         pair_in, pairid_in, pair_worldid_in, patch_pair, patch_result, patch_pos, i,
-                                         j % nattempt)
-    tilt_result[q, j % nattempt] = tilt_mpr(a, b, ms, support_mode, res, scale, tolerance, iterations, rot)
-
-
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
-def patch_kernel(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_condim: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_priority: wp.array(dtype=int),
-  geom_solmix: wp.array2d(dtype=float),
-  geom_solref: wp.array2d(dtype=wp.vec2),
-  geom_solimp: wp.array2d(dtype=vec5),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_friction: wp.array2d(dtype=wp.vec3),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  geom_adhesion: wp.array2d(dtype=float),
-  geom_aabb: wp.array3d(dtype=wp.vec3),
-  pair_dim: wp.array(dtype=int),
-  pair_solref: wp.array2d(dtype=wp.vec2),
-  pair_solreffriction: wp.array2d(dtype=wp.vec2),
-  pair_solimp: wp.array2d(dtype=vec5),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  pair_adhesion: wp.array2d(dtype=float),
-  pair_friction: wp.array2d(dtype=vec5),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  naconmax_in: int,
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  tolerance: float,
-  iterations: int,
-  max_contacts: int,
-  mc_perturbation: float,
-  mc_tolerance: float,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  tilt_pair_count: wp.array(dtype=int),
-  tilt_pair: wp.array(dtype=int),
-  patch_pair: wp.array(dtype=int),
-  patch_result: wp.array(dtype=wp.vec4),
-  patch_pos: wp.array(dtype=wp.vec3),
-  tilt_result: wp.array2d(dtype=wp.vec4),
-  nthread: int,
-  quota: ContactQuota,
-  # Data out:
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
-):
-  """The pairs left to the tilts (face_pair_kernel, manifold_kernel): the tilts, then all their
-  contacts.
-
-  A separate kernel so that warps run only pairs that need the tilts: in the convex kernel one
-  such pair held its whole warp (8x the cost on a GPU). The tilts come from tilt_kernel and
-  tilt_mpr_kernel for the first ``len(tilt_result)`` queued pairs; this kernel replays the tilt
-  logic with them, and computes the tilts itself for any pair beyond.
-  """
-  tid = wp.tid()
-  for q in range(tid, tilt_pair_count[0], nthread):
-    i = tilt_pair[q]
-    cid = patch_pair[i]
-    geoms = pair_in[cid]
-    g1 = geoms[0]
-    g2 = geoms[1]
-    worldid = pair_worldid_in[cid]
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-      pair_friction, pair_in, pairid_in, cid, worldid,
-    )
-    band = wp.max(margin + gap, 0.0)
-    a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
-                                     geoms, worldid, patch_result[i], patch_pos[i])
-    # duplicates: closer than mc_tolerance x the smaller geom's box size
-    ab = worldid % geom_aabb.shape[0]
-    size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
-    extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
-                               mc_tolerance * size, tilt_result, wp.where(q < tilt_result.shape[0], q, -1))
-    write_pair_contacts(
-      res, extra, mc_tolerance * size, tolerance * scale, max_contacts, band, naconmax_in, margin, gap, condim,
-      friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
-      contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
-    )
-
-
-def pair_types_present(mjm, pairs) -> set:
-  """Ordered (type1 <= type2) geom-type pairs that the model can produce."""
-  types = set()
-  gt = np.asarray(mjm.geom_type)
-  for g1, g2 in pairs:
-    t1, t2 = sorted((int(gt[g1]), int(gt[g2])))
-    types.add((GeomType(t1), GeomType(t2)))
-  return types
-
-
-def pair_queue_table(present) -> tuple:
-  """The analytic and the MPR geom-type pairs among ``present`` (ordered pairs the model can
-  produce), and the table that maps a pair's types to its queue (see PairQueues)."""
-  analytic_types = tuple(t for t in ANALYTIC_PAIRS if t in present)
-  queue_table = np.full(NGEOMTYPE**2, -1, dtype=np.int32)
-  for t1, t2 in analytic_types:
-    queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_ANALYTIC
-  mpr_types = []
-  for t1, t2 in present:
-    if (t1, t2) not in ANALYTIC_PAIRS and t1 in CONVEX_TYPES and t2 in CONVEX_TYPES:
-      queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_MPR
-      mpr_types.append((t1, t2))
-  return analytic_types, mpr_types, queue_table
-
-
 @dataclasses.dataclass
 class Buffers:
   """The narrow phase's per-Data buffers: its queues and the multi-contact queues."""
@@ -1160,7 +565,7 @@ class Buffers:
   patch_pos: wp.array
   face_count: wp.array  # of those, the pairs touching face on feature (manifold_kernel)
   face_queue: wp.array  # their indices into patch_pair
-  face_faces: wp.array  # their faces (multicontact.face_pair)
+  face_faces: wp.array  # their faces (faceclip.face_pair)
   tilt_pair_count: wp.array  # and the pairs left to the tilts (patch_kernel)
   tilt_pair: wp.array  # their indices into patch_pair
   tilt_result: wp.array  # (pairs left to the tilts, 8) the tilts' points, both attempts
@@ -1249,71 +654,3 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
       outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos] + contact_outputs(d),
     )
 
-
-def launch_multicontact(c, m, d, pairs, b: Buffers, quota: ContactQuota):
-  """The multi-contact pass over the pairs the MPR kernel queued: face pairs, face clipping, the
-  tilts and their MPRs, then each tilted pair's contacts (``c``: the Collider; ``pairs``: the
-  broad phase's buffers)."""
-  if not c.mpr_types:
-    return
-  opt = c.options
-  mode = SUPPORT_MODE_ID[opt.support_mode]
-  nthread = max(1, min(pairs.capacity, GRID_THREADS))
-  nthread_tilt = max(1, min(b.tilt_result.shape[0] * b.tilt_result.shape[1], GRID_THREADS))
-  pair, pairid, pair_worldid = pairs.pair, pairs.pairid, pairs.pair_worldid
-  wp.launch(
-    face_pair_kernel,
-    dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-      m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, mode,
-      pair, pairid, pair_worldid, b.patch_count, b.patch_pair, b.patch_result, nthread,
-    ],
-    outputs=[b.face_count, b.face_queue, b.face_faces, b.tilt_pair_count, b.tilt_pair],
-  )
-  wp.launch(
-    manifold_kernel,
-    dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
-      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-      m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-      opt.max_contacts_per_pair, opt.mc_tolerance, pair, pairid, pair_worldid,
-      b.patch_pair, b.patch_result, b.patch_pos, b.face_count, b.face_queue, b.face_faces, nthread,
-      quota,
-    ],
-    outputs=[b.tilt_pair_count, b.tilt_pair] + contact_outputs(d),
-  )
-  tilt_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-                m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, mode]
-  wp.launch(
-    tilt_kernel,
-    dim=nthread_tilt,
-    inputs=tilt_model + [opt.mc_perturbation, pair, pairid, pair_worldid, b.tilt_pair_count,
-                         b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos, nthread_tilt],
-    outputs=[b.tilt_result, b.tilt_count, b.tilt_queue],
-  )
-  wp.launch(
-    tilt_mpr_kernel,
-    dim=nthread_tilt,
-    inputs=tilt_model + [opt.mpr_tolerance, opt.mpr_iterations, opt.mc_perturbation,
-                         pair, pairid, pair_worldid, b.tilt_pair, b.patch_pair, b.patch_result,
-                         b.patch_pos, b.tilt_count, b.tilt_queue, nthread_tilt],
-    outputs=[b.tilt_result],
-  )
-  wp.launch(
-    patch_kernel,
-    dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
-      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-      m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-      mode, opt.mpr_tolerance, opt.mpr_iterations,
-      opt.max_contacts_per_pair, opt.mc_perturbation, opt.mc_tolerance, pair,
-      pairid, pair_worldid, b.tilt_pair_count, b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos,
-      b.tilt_result, nthread, quota,
-    ],
-    outputs=contact_outputs(d),
-  )

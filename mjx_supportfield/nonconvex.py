@@ -35,7 +35,7 @@ from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
 from mjx_supportfield.narrowphase import GRID_THREADS
-from mjx_supportfield.narrowphase import posed_shape
+from mjx_supportfield.shapes import posed_shape
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import sample_point
 from mjx_supportfield.sdf import shape_sdf

@@ -8,7 +8,7 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
 import mjx_supportfield as sf
-from mjx_supportfield import narrowphase as nph
+from mjx_supportfield import routing as nph
 from conftest import contacts
 from conftest import load
 from conftest import random_quat

@@ -8,7 +8,7 @@ its GJK/EPA multi-contact path instead, which gives 4 of the overlap polygon's 5
 rotated face-on-face case below; that is why these are compared with MuJoCo C, not with stock.
 
 Mesh-mesh, box-mesh and cylinder-box go through MPR (or GJK/EPA) and face clipping
-(multicontact.face_pair, clip_faces): the normal lies along a face of one shape, and the other's facing
+(faceclip.face_pair, clip_faces): the normal lies along a face of one shape, and the other's facing
 face, edge or line is clipped to it. A face on a face gets every corner of the overlap polygon
 (up to 5; MuJoCo C's multi-CCD keeps 4 of them), an edge or a cylinder's side the two ends of
 the line, a cylinder's end MuJoCo's quadrilateral of its 16-gon; every point of MuJoCo C's

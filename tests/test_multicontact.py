@@ -11,7 +11,9 @@ from conftest import load_mjmodel
 
 import mujoco
 import mjx_supportfield as sf
+from mjx_supportfield import faceclip
 from mjx_supportfield import multicontact
+from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import behind_origin
@@ -219,7 +221,7 @@ ROLLERS_XML = """
 """
 
 # a 48-gon prism standing on a box: its end and the box's face have more corners together than
-# face clipping takes on (multicontact.FACE_PAIR_BUDGET corner pairs)
+# face clipping takes on (faceclip.FACE_PAIR_BUDGET corner pairs)
 _ANGLES = np.arange(48) * 2.0 * np.pi / 48
 PRISM = " ".join(f"{0.03 * np.cos(t):.6f} {0.03 * np.sin(t):.6f} {z}" for z in (-0.02, 0.02) for t in _ANGLES)
 PRISM_XML = f"""
@@ -252,9 +254,9 @@ def test_face_contacts_skip_the_tilts():
 
 
 def test_polygons_over_the_budget_go_to_the_tilts():
-  """A 48-gon end on a box's face (48 x 4 corner pairs, over multicontact.FACE_PAIR_BUDGET): the pair
+  """A 48-gon end on a box's face (48 x 4 corner pairs, over faceclip.FACE_PAIR_BUDGET): the pair
   goes to the tilts, which still spread points over the end's rim, at the depth."""
-  assert multicontact.FACE_PAIR_BUDGET < 48 * 4
+  assert faceclip.FACE_PAIR_BUDGET < 48 * 4
   npatch, ntilt, sim = _queues(PRISM_XML)
   assert (npatch, ntilt) == (1, 1)
   c = contacts(sim.d, 0)
@@ -304,7 +306,7 @@ def _both_tilts(
   by_mpr: wp.array2d(dtype=wp.vec4),
 ):
   i, j = wp.tid()
-  a, b, scale, res, rot = narrowphase._queued_tilt(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap,
+  a, b, scale, res, rot = multicontact_pass._queued_tilt(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap,
                                                    pair_margin, pair_gap, geom_xpos, geom_xmat, ms, eps, pair, pairid,
                                                    pair_worldid, patch_pair, patch_result, patch_pos, i, j)
   closed[i, j] = multicontact.tilt_closed_form(a, b, ms, SUPPORT_REFINED, res, scale, rot)

@@ -143,7 +143,7 @@ def face_pair_kernel(
   tilt_pair: wp.array(dtype=int),
 ):
   """The pairs convex_narrowphase queued for multi-contact, one thread a pair: those touching
-  face on feature along the normal (multicontact.face_pair) are queued, with their faces, for
+  face on feature along the normal (faceclip.face_pair) are queued, with their faces, for
   manifold_kernel; the rest (edge on edge, curved surfaces, polygons over budget), by their
   index in the multi-contact queue, for the tilts (tilt_kernel, tilt_mpr_kernel, patch_kernel).
   Apart from the clipping, so that the support queries here and the clipping's loops there do
@@ -232,7 +232,7 @@ def manifold_kernel(
   nacon_out: wp.array(dtype=int),
 ):
   """The pairs face_pair_kernel queued for face clipping, one thread a pair: the faces it found
-  clipped (multicontact.clip_faces) give the contacts; a pair whose corners all lie above the
+  clipped (faceclip.clip_faces) give the contacts; a pair whose corners all lie above the
   band goes on to the tilts after all."""
   tid = wp.tid()
   for s in range(tid, face_count[0], nthread):

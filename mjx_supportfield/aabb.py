@@ -3,8 +3,7 @@
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
-# "infinite" extent for planes; finite so that sums and comparisons stay well defined
-BIG = 1.0e30
+from mjx_supportfield.types import FAR  # a plane's extent: finite, so sums and comparisons stay defined
 
 
 @wp.func
@@ -19,8 +18,8 @@ def _is_finite(p: wp.vec3, r: wp.mat33) -> bool:
 @wp.func
 def _plane_box(pos: wp.vec3, normal: wp.vec3, inflate: float) -> tuple[wp.vec3, wp.vec3]:
   """Box of a plane's solid half-space: bounded only along an axis the normal is parallel to."""
-  lo = wp.vec3(-BIG)
-  hi = wp.vec3(BIG)
+  lo = wp.vec3(-FAR)
+  hi = wp.vec3(FAR)
   for k in range(3):
     if wp.abs(normal[k]) == 1.0:
       if normal[k] > 0.0:
@@ -61,8 +60,8 @@ def update_aabbs(
     empty = True  # per-world mesh assignment: this geom is absent from this world
 
   if empty:
-    aabb_lo_out[worldid, geomid] = wp.vec3(BIG)
-    aabb_hi_out[worldid, geomid] = wp.vec3(-BIG)
+    aabb_lo_out[worldid, geomid] = wp.vec3(FAR)
+    aabb_hi_out[worldid, geomid] = wp.vec3(-FAR)
     return
 
   if gtype == GeomType.PLANE:

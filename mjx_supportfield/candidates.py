@@ -9,10 +9,10 @@ from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import world_rows
+from mjx_supportfield.types import FAR
 
 NCANDIDATE = 16  # contact candidates kept per pair before the final choice
 MAX_CONTACTS = 8  # most contacts of the spread choice per pair (Options.max_contacts_per_pair bounds it too)
-FAR = 1.0e30
 
 mat_cand = wp.types.matrix(shape=(NCANDIDATE, 3), dtype=float)
 vec_cand = wp.types.vector(length=NCANDIDATE, dtype=float)

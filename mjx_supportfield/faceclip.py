@@ -19,6 +19,7 @@ from mjx_supportfield.multicontact import ON_FACE_TOL
 from mjx_supportfield.multicontact import _polygon_toward
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import mesh_support_index
+from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -276,16 +277,16 @@ def _new_picks() -> Picks:
   p.b4 = 0.0
   p.deep_a = 0.0
   p.deep_b = 0.0
-  p.deep_h = 1.0e30
+  p.deep_h = FAR
   # extremes start beyond any corner, so that the first corner takes every slot
-  p.e0a = -1.0e30
+  p.e0a = -FAR
   p.e0b = 0.0
-  p.e1a = 1.0e30
+  p.e1a = FAR
   p.e1b = 0.0
   p.e2a = 0.0
-  p.e2b = -1.0e30
+  p.e2b = -FAR
   p.e3a = 0.0
-  p.e3b = 1.0e30
+  p.e3b = FAR
   return p
 
 

@@ -30,6 +30,7 @@ from mjx_supportfield.mpr import Vertex
 from mjx_supportfield.mpr import miss
 from mjx_supportfield.support import count_supports
 from mjx_supportfield.support import support_world
+from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -39,7 +40,6 @@ TIE_ANGLE = 1.0e-5  # [rad] turn of a direction with tied support points
 EPA_VERTS = 64  # polytope vertices at most (EPA stops growing there)
 EPA_FACES = 2 * EPA_VERTS - 4  # faces of a closed triangulated polytope with EPA_VERTS vertices
 EPA_HORIZON = EPA_VERTS  # horizon edges at most (the horizon is a loop through the vertices)
-FAR = 1.0e30
 
 mat43 = wp.types.matrix(shape=(4, 3), dtype=float)
 _verts = wp.types.matrix(shape=(EPA_VERTS, 3), dtype=float)

@@ -313,8 +313,8 @@ def behind_origin(
   Half the larger of ``depth`` and ``least`` x scale behind the origin, but never past half of
   how far A - B reaches behind it (one support query), so thin shapes keep it inside. With
   least = 0, half a resting contact's few µm is too close: there the portal search is
-  ill-conditioned and runs out of iterations (on a settled pile of meshes, 9 % of the tilted
-  MPRs missed that way); BEHIND avoids that.
+  ill-conditioned and runs out of iterations (tilted MPRs on resting meshes missed that way);
+  BEHIND avoids that.
   """
   back = wp.dot(_support(a, b, ms, -normal, mode).v, -normal)
   dist = wp.max(wp.min(wp.max(depth, least * scale), back), 1.0e-6 * scale)

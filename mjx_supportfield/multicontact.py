@@ -34,6 +34,7 @@ from mjx_supportfield.support import count_supports
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import mesh_support_index
 from mjx_supportfield.support import support_world
+from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -45,8 +46,8 @@ NPERTURB = 4  # tilts: +-eps about each diagonal of the contact plane
 TILT_TOL = 1.0e-6
 TILT_ITERATIONS = 16
 TILT_GROWTH = 9.0  # the retry's tilt, in units of eps
-MISSED = wp.constant(-1.0e30)  # depth of a tilt whose shapes do not overlap
-UNKNOWN = wp.constant(1.0e30)  # depth of a tilt the closed form cannot answer: MPR must
+MISSED = wp.constant(-FAR)  # depth of a tilt whose shapes do not overlap
+UNKNOWN = wp.constant(FAR)  # depth of a tilt the closed form cannot answer: MPR must
 # a closed-form point may lie this far (x the pair's scale) off the other shape's face: a
 # corner sitting on a face's edge is on the face up to float32 noise
 ON_FACE_TOL = 1.0e-5
@@ -132,7 +133,7 @@ def keep_first(first: MprResult, patch: Patch, min_spacing: float, tol: float) -
   or another as the bodies rock, and writing it made the contact count flicker. It is also
   left out when it duplicates a patch point.
   """
-  deepest = float(-1.0e30)
+  deepest = float(-FAR)
   for j in range(patch.n):
     deepest = wp.max(deepest, patch.depth[j])
     if wp.length(first.pos - wp.vec3(patch.pos[j, 0], patch.pos[j, 1], patch.pos[j, 2])) < min_spacing:

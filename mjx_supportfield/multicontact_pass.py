@@ -329,8 +329,8 @@ def tilt_kernel(
   and manifold_kernel (row q of tilt_result: the q-th of them), one thread an attempt, in closed form
   (multicontact.tilt_closed_form); the attempts it cannot answer are queued for tilt_mpr_kernel,
   so the tilted MPRs run on dense warps. The steeper attempt is computed whether or not
-  patch_kernel's replay needs it: on the pile and on aloha_pot 84 % of the first attempts land
-  back on the first contact and need it."""
+  patch_kernel's replay needs it: most first attempts land back on the first contact and need
+  it."""
   tid = wp.tid()
   nattempt = 2 * NPERTURB
   for j in range(tid, wp.min(tilt_pair_count[0], tilt_result.shape[0]) * nattempt, nthread):
@@ -464,7 +464,7 @@ def patch_kernel(
   contacts.
 
   A separate kernel so that warps run only pairs that need the tilts: in the convex kernel one
-  such pair held its whole warp (8x the cost on a GPU). The tilts come from tilt_kernel and
+  such pair held its whole warp. The tilts come from tilt_kernel and
   tilt_mpr_kernel for the first ``len(tilt_result)`` queued pairs; this kernel replays the tilt
   logic with them, and computes the tilts itself for any pair beyond.
   """

@@ -41,6 +41,7 @@ from mjx_supportfield.sdf import sample_point
 from mjx_supportfield.sdf import shape_sdf
 from mjx_supportfield.sdf import shape_sdf_grad
 from mjx_supportfield.support import box_corner
+from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -148,7 +149,7 @@ def _segment_min(dst: Shape, dst_nonconvex: int, sdfs: SdfSet, p0: wp.vec3, p1: 
   """The point of segment p0-p1 deepest in dst's SDF: samples, then bisection around the best."""
   n = wp.clamp(int(wp.length(p1 - p0) / wp.max(spacing, 1.0e-9)) + 2, 2, EDGE_SAMPLES)
   best_t = float(0.0)
-  best = float(1.0e30)
+  best = float(FAR)
   for k in range(n):
     t = float(k) / float(n - 1)
     v = signed_distance(dst, dst_nonconvex, sdfs, p0 + t * (p1 - p0))

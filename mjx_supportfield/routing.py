@@ -59,8 +59,8 @@ def queue_pair(geom_type: wp.array(dtype=int), geoms: wp.vec2i, cid: int, queues
   radius: GJK gives the exact nearest points, where MPR's normal drifts for a small sphere sunk
   deep), as do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py. The other
   MPR pairs wait in QUEUE_CANDIDATE for sift_mpr_pairs. Cheap on purpose: the broad-phase
-  kernels that call it run a thread per (world, pair), and support queries here made those
-  threads heavy (aloha_pot's nxn kernel: 2.8 ms at 8192 worlds).
+  kernels that call it run a thread per (world, pair), and support queries here would make
+  every one of those threads heavy.
   """
   type1 = geom_type[geoms[0]]
   type2 = geom_type[geoms[1]]

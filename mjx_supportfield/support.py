@@ -3,6 +3,7 @@
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
+from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_EXACT
 from mjx_supportfield.types import SUPPORT_FIELD
 from mjx_supportfield.types import SUPPORT_REFINED
@@ -126,7 +127,7 @@ def hill_climb(ms: MeshSupport, mesh: int, start: int, d: wp.vec3) -> int:
 def hull_scan(ms: MeshSupport, mesh: int, d: wp.vec3) -> int:
   """Exhaustive scan of the hull vertices (first maximum wins)."""
   best = int(0)
-  best_dot = float(-1.0e30)
+  best_dot = float(-FAR)
   for k in range(ms.hull_num[mesh]):
     kd = wp.dot(hull_point(ms, mesh, k), d)
     if kd > best_dot:
@@ -180,7 +181,7 @@ def prism_support(top: wp.mat33, bottom: float, d: wp.vec3) -> wp.vec3:
   """Support point of a vertical triangular prism: top vertices in the rows of ``top``, base at
   z = bottom (a heightfield cell's half, see heightfield.py)."""
   best = int(0)
-  best_dot = float(-1.0e30)
+  best_dot = float(-FAR)
   for i in range(3):
     s = top[i, 0] * d[0] + top[i, 1] * d[1] + wp.where(d[2] > 0.0, top[i, 2], bottom) * d[2]
     if s > best_dot:

@@ -3,6 +3,10 @@
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
+# beyond any distance, depth or coordinate of a scene: the start of a search for a minimum (or,
+# negated, a maximum) and the sentinel of an empty answer
+FAR = 1.0e30
+
 # support_mode as passed to kernels
 SUPPORT_FIELD = 0
 SUPPORT_REFINED = 1

@@ -158,6 +158,8 @@ class Collider:
       if not getattr(d.contact, field).is_contiguous:
         raise ValueError(f"mjx_supportfield: Data.contact.{field} is not contiguous; make the Data with"
                          " mjw.make_data or mjw.put_data")
+    if self.options.contacts_per_world:
+      contact_quota.check_fits(self.options.contacts_per_world, d.nworld, d.naconmax)
 
   @staticmethod
   def reset_worlds(d, reset: Optional[wp.array] = None) -> None:
@@ -188,10 +190,8 @@ class Collider:
       d.nacon.zero_()
       return
     per_world = self.options.contacts_per_world
-    if per_world:
-      contact_quota.check_fits(per_world, d.nworld, d.naconmax)
-      if awake_prev is not None or m.opt.enableflags & EnableBit.SLEEP:  # enabled after install
-        raise ValueError(_SLEEP_QUOTA)
+    if per_world and (awake_prev is not None or m.opt.enableflags & EnableBit.SLEEP):  # enabled after install
+      raise ValueError(_SLEEP_QUOTA)
     st = self.state(m, d)
     incremental = awake_prev is not None
     stage_ends.start(d, st, incremental, bool(self.mpr_types) and self.options.warm_start)

@@ -55,6 +55,7 @@ class DataState:
   warm: warmstart.WarmCache
   quota: contact_quota.QuotaBuffers  # each world's contact rows (Options.contacts_per_world)
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
+  fields: Optional[tuple] = None  # contact_sort.fields_and_copy, made on first use: packing's and sorting's scratch
 
 
 class Collider:
@@ -210,12 +211,15 @@ class Collider:
 
     if m.nflex > 0 and not incremental:
       collision_driver.flex_collision(m, d, st.broad.stock_ctx)
+    sort = m.opt.deterministic & DeterminismType.CONTACTS
+    if (per_world or sort) and st.fields is None:
+      st.fields = contact_sort.fields_and_copy(d)
     if per_world:
-      contact_quota.pack(d, st.quota, bool(int(m.opt.warn_overflow) & int(OverflowType.NARROWPHASE)))
+      contact_quota.pack(d, st.quota, st.fields, bool(int(m.opt.warn_overflow) & int(OverflowType.NARROWPHASE)))
     # the packed rows keep each world's writers' order, which atomics make vary on a GPU: the sort still runs
-    if m.opt.deterministic & DeterminismType.CONTACTS:
+    if sort:
       if st.sort is None:
-        st.sort = contact_sort.make_buffers(d, self.ngeom)
+        st.sort = contact_sort.make_buffers(d, self.ngeom, st.fields)
       contact_sort.sort_contacts(d, st.sort, self.ngeom)
     if m.flg_surfacevel:
       stage_ends.surface_velocities(m, d)

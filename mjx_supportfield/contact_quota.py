@@ -114,8 +114,6 @@ class QuotaBuffers:
   world_start: wp.array  # (nworld) their first row once packed
   stock_dropped: wp.array  # (1) contacts MuJoCo Warp's own writers found beyond naconmax
   nwarned: wp.array  # (1) overflow warnings printed this step
-  contact: ContactFields = None  # d.contact's fields and a copy of them (made on first use)
-  copy: ContactFields = None
 
 
 def make_buffers(nworld: int, per_world: int) -> QuotaBuffers:
@@ -269,17 +267,15 @@ def start(d, buf: QuotaBuffers, per_world: int) -> None:
             outputs=[d.nacon, buf.quota.world_ncon, buf.stock_dropped, buf.nwarned])
 
 
-def pack(d, buf: QuotaBuffers, warn: bool) -> None:
-  """Packs the world rows (and the shared rest) to the front of d.contact; d.nacon counts them."""
+def pack(d, buf: QuotaBuffers, fields: tuple, warn: bool) -> None:
+  """Packs the world rows (and the shared rest) to the front of d.contact; d.nacon counts them.
+  ``fields``: contact_sort.fields_and_copy(d), the scratch the rows move through."""
   n, per_world = d.naconmax, buf.quota.per_world
-  if buf.contact is None:
-    fields = {f: getattr(d.contact, f) for f in contact_sort.FIELDS}
-    buf.contact = contact_sort.contact_fields(fields)
-    buf.copy = contact_sort.contact_fields({f: wp.empty_like(a) for f, a in fields.items()})
+  contact, copy = fields
   wp.launch(_kept_per_world, dim=d.nworld, inputs=[per_world, n, warn, d.nacon, buf.quota.world_ncon],
             outputs=[buf.world_kept, buf.stock_dropped, d.overflow, buf.nwarned])
   wp.utils.array_scan(buf.world_kept, buf.world_start, inclusive=False)
-  wp.launch(contact_sort._copy, dim=n, inputs=[n, d.nacon, buf.contact], outputs=[buf.copy])
-  wp.launch(_pack, dim=n, inputs=[per_world, n, d.nacon, buf.world_kept, buf.world_start, buf.copy],
-            outputs=[buf.contact, d.contact.efc_address])
+  wp.launch(contact_sort._copy, dim=n, inputs=[n, d.nacon, contact], outputs=[copy])
+  wp.launch(_pack, dim=n, inputs=[per_world, n, d.nacon, buf.world_kept, buf.world_start, copy],
+            outputs=[contact, d.contact.efc_address])
   wp.launch(_packed_count, dim=1, inputs=[per_world, n, buf.world_kept, buf.world_start], outputs=[d.nacon])

@@ -11,6 +11,7 @@ CUDA graph); unused slots get a key past every real one and stay at the end.
 """
 
 import dataclasses
+from typing import Optional
 
 import warp as wp
 from mujoco_warp._src.types import vec5
@@ -76,17 +77,24 @@ class SortBuffers:
   end_bit: int  # key bits the sort looks at
 
 
-def make_buffers(d, ngeom: int) -> SortBuffers:
-  """Buffers for sorting ``d.contact`` on its device."""
+def fields_and_copy(d) -> tuple[ContactFields, ContactFields]:
+  """``d.contact``'s fields, and a copy shaped alike: the scratch rows move through when they are
+  reordered (sorted here, packed by contact_quota), one per Data."""
+  fields = {f: getattr(d.contact, f) for f in FIELDS}
+  return contact_fields(fields), contact_fields({f: wp.empty_like(a) for f, a in fields.items()})
+
+
+def make_buffers(d, ngeom: int, fields: Optional[tuple] = None) -> SortBuffers:
+  """Buffers for sorting ``d.contact`` on its device; ``fields``: fields_and_copy(d), if made already."""
   n = d.naconmax
   device = d.contact.dist.device
   nkey = d.nworld * (ngeom + 1) * (ngeom + 1)  # the sentinel key of an unused slot
-  fields = {f: getattr(d.contact, f) for f in FIELDS}
+  contact, copy = fields or fields_and_copy(d)
   return SortBuffers(
     keys=wp.zeros(2 * n, dtype=wp.int64, device=device),
     index=wp.zeros(2 * n, dtype=wp.int32, device=device),
-    contact=contact_fields(fields),
-    copy=contact_fields({f: wp.empty_like(a) for f, a in fields.items()}),
+    contact=contact,
+    copy=copy,
     end_bit=max(1, int(nkey).bit_length()),
   )
 

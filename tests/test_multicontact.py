@@ -286,13 +286,19 @@ def test_parallel_tilts_match_the_sequential_ones(monkeypatch, scene, per_world)
     c = sim.d.contact
     rows = np.concatenate([c.worldid.numpy()[:n, None], c.geom.numpy()[:n], c.dist.numpy()[:n, None],
                            c.pos.numpy()[:n], c.frame.numpy()[:n].reshape(n, 9)], axis=1)
-    return rows[np.lexsort(rows.T[::-1])]
+    key = np.round(rows, 5)  # the order may not hang on the last bits the GPU leaves (below)
+    return rows[np.lexsort(key.T[::-1])]
 
   parallel = run()
   monkeypatch.setattr(narrowphase, "TILT_PAIRS_PER_WORLD", per_world)
   fewer = run()
   assert len(parallel) >= 2 * (2 if scene == "rollers" else 1)
-  np.testing.assert_array_equal(fewer, parallel)
+  if wp.get_device().is_cuda:
+    # the same device functions compiled into two kernels: the CUDA compiler fuses their
+    # multiply-adds differently, so the two agree to float32 rounding, not bit for bit
+    np.testing.assert_allclose(fewer, parallel, rtol=1e-5, atol=1e-7)
+  else:
+    np.testing.assert_array_equal(fewer, parallel)
 
 
 @wp.kernel

@@ -40,6 +40,7 @@ from mjx_supportfield.types import CONVEX_TYPES
 from mjx_supportfield.types import STOCK_TYPES
 
 _STATE_ATTR = "_mjx_supportfield_state"
+STOCK_COLLISION = collision_driver.collision  # MuJoCo Warp's own, taken before install() routes it here
 # a sleeping step's second pass appends to the first pass's contacts, which the quota has packed
 _SLEEP_QUOTA = ("mjx_supportfield: Options.contacts_per_world does not work with sleeping (the model enables"
                 " mjtEnableBit.mjENBL_SLEEP); use contacts_per_world = 0 or disable sleeping")
@@ -119,6 +120,7 @@ class Collider:
         meshes |= mesh_ids
       self.mesh_sdf = build_mesh_sdf(mjm, options.sdf_res, meshes, device)
       self.sdfs.hull = self.mesh_sdf
+    self.stock_path = routing.gives_plugin_nothing(self, m)
 
   # --- per-Data state -------------------------------------------------------------------
 
@@ -187,6 +189,9 @@ class Collider:
       self._collision(m, d, awake_prev)
 
   def _collision(self, m, d, awake_prev: Optional[wp.array]):
+    if self.stock_path:
+      STOCK_COLLISION(m, d, awake_prev)
+      return
     if d.naconmax == 0 or m.opt.disableflags & (DisableBit.CONSTRAINT | DisableBit.CONTACT):
       d.nacon.zero_()
       return
@@ -229,21 +234,9 @@ class Collider:
   # --- diagnostics --------------------------------------------------------------------
 
   def stats(self, d) -> "CollisionStats":
-    """Host-side counters of the last collision on ``d`` (reads the device: not for graphs).
-
-    A ``CollisionStats``: a dict of the counters below (per-world lists included) that prints as a
-    summary (totals and the worlds with the most pairs or drops; ``summary()``).
-
-    With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
-    ``dropped_contacts`` counts the contacts beyond ``d.naconmax`` (all worlds together), and with
-    ``Options.contacts_per_world`` also those beyond each world's rows; ``dropped_contacts_per_world``
-    has those of each world (all 0 without contacts_per_world: the shared buffer does not know whose
-    contacts it dropped).
-    ``warm_start_misses`` counts the pairs whose warm-started MPR missed and ran again cold.
-    ``hfield_mprs_unqueued`` counts the terrain MPRs the heightfield queue had no room for: they
-    ran one after another in their pair's thread (the same contacts, slower; see
-    ``Options.hfield_mprs_per_pair``).
-    """
+    """Host-side counters of the last collision on ``d`` (reads the device: not for graphs): a
+    ``CollisionStats``, a dict of counters (per-world lists included; its docstring names them)
+    that prints as a summary."""
     from mjx_supportfield import stats
 
     states = getattr(d, _STATE_ATTR, None)

@@ -10,12 +10,12 @@ from mujoco_warp._src import collision_driver
 from mujoco_warp._src import io as mjw_io
 
 from mjx_supportfield import first_use
+from mjx_supportfield.collider import STOCK_COLLISION as _STOCK_COLLISION
 from mjx_supportfield.collider import Collider
 from mjx_supportfield.options import Options
 from mjx_supportfield.types import CONVEX_TYPES
 
 _ATTR = "_mjx_supportfield_collider"  # where a model keeps its Collider
-_STOCK_COLLISION = collision_driver.collision
 _STOCK_RESET = mjw_io.reset_data
 
 

@@ -105,6 +105,15 @@ class Options:
       then packed to the front. nworld x N must fit in naconmax; the rows beyond hold the
       contacts of MuJoCo Warp's own collision routines (SDF geoms, collision sensors, flexes),
       which stay shared. Not with sleeping enabled (install refuses it).
+    stock_for_analytic_models: what collides a model that gives the plugin nothing to do: every
+      geom pair one of MuJoCo's analytic pairs (no convex mesh, cylinder or ellipsoid pair left
+      to MPR, no heightfield, no non-convex mesh) and few enough pairs for the nxn broad phase.
+      The plugin would run MuJoCo Warp's own analytic routines on the same pairs and write the
+      same contacts, bit for bit, with more launches. Default True: such a model collides
+      through MuJoCo Warp's own collision stage; ``stats(d)`` then holds only its pair count
+      (``path`` is "stock"), and the plugin's per-world pair budget and NaN-pose skip do not
+      apply. False, ``broadphase`` other than "auto", or ``contacts_per_world`` > 0: the
+      plugin's own pipeline.
   """
 
   support_res: int = 180
@@ -127,6 +136,7 @@ class Options:
   nonconvex_sdf_res: int = 64
   hfield_mprs_per_pair: int = 16
   contacts_per_world: int = 0
+  stock_for_analytic_models: bool = True
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)
@@ -141,7 +151,7 @@ class Options:
     _check_float("mpr_tolerance", self.mpr_tolerance, 1e-12, 1e-2)
     _check_int("mpr_refine", self.mpr_refine, 0, 32)
     _check_int("sap_axis", self.sap_axis, 0, 2)
-    for name in ("multi_contact", "warm_start"):
+    for name in ("multi_contact", "warm_start", "stock_for_analytic_models"):
       if not isinstance(getattr(self, name), bool):
         raise ValueError(f"Options.{name}: expected True or False, got {getattr(self, name)!r}")
     _check_int("max_contacts_per_pair", self.max_contacts_per_pair, 1, 5)

@@ -9,6 +9,7 @@ device); the Collider builds, at install, the table that maps a pair's geom type
 import numpy as np
 import warp as wp
 from mujoco_warp._src.collision_primitive import _PRIMITIVE_COLLISIONS
+from mujoco_warp._src.types import BroadphaseType
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.types import CONVEX_TYPES
@@ -100,3 +101,13 @@ def pair_queue_table(present) -> tuple:
       queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_MPR
       mpr_types.append((t1, t2))
   return analytic_types, mpr_types, queue_table
+
+
+def gives_plugin_nothing(c, m) -> bool:
+  """Whether MuJoCo Warp's own collision stage computes model ``m``'s contacts, bit for bit, with
+  less work than the plugin's (``c``: its Collider): analytic pairs only, which both run through
+  MuJoCo Warp's routines, on an nxn broad phase in both (Options.stock_for_analytic_models)."""
+  opt = c.options
+  return (opt.stock_for_analytic_models and opt.broadphase == "auto" and c.nxn and not opt.contacts_per_world
+          and not (c.mpr_types or c.has_hfield_pairs or c.has_nonconvex_pairs)
+          and m.opt.broadphase == BroadphaseType.NXN)

@@ -19,6 +19,10 @@ class CollisionStats(dict):
     dropped_contacts_per_world: those beyond each world's rows (all 0 without contacts_per_world).
     warm_start_misses: pairs whose warm-started MPR missed and ran again cold.
     hfield_mprs_unqueued: terrain MPRs the heightfield queue had no room for.
+    path: "plugin", or "stock" where MuJoCo Warp's own collision stage ran
+      (``Options.stock_for_analytic_models``); then ``pairs`` is its pair count, the per-world
+      lists are empty and the plugin's other counters 0.
+    With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
 
   ``str(stats)`` (and ``print``) gives ``summary()``: totals, and the few worlds with the most pairs
   or drops, instead of three lists of nworld numbers; ``repr`` gives the totals on one line.
@@ -31,6 +35,9 @@ class CollisionStats(dict):
 
   def summary(self, worst: int = 3) -> str:
     """Totals of each counter, with the ``worst`` worlds by pairs and by dropped pairs."""
+    if self.get("path") == "stock":
+      return (f"MuJoCo Warp's own collision stage (the model has only analytic pairs): {self['pairs']} broad-phase"
+              f" pairs, {self['dropped_contacts']} contacts dropped beyond naconmax")
     if not self.nworld:
       return "no collision has run on this Data yet"
     pairs = self["pairs_per_world"]
@@ -72,6 +79,8 @@ class CollisionStats(dict):
     return self.summary()
 
   def __repr__(self) -> str:
+    if self.get("path") == "stock":
+      return f"CollisionStats(path=stock, pairs={self['pairs']}, dropped_contacts={self['dropped_contacts']})"
     if not self.nworld:
       return "CollisionStats(no collision yet)"
     totals = {
@@ -89,14 +98,20 @@ class CollisionStats(dict):
 def collect(c, d, st) -> CollisionStats:
   """The counters of the last collision on ``d`` from Collider ``c``'s per-Data state ``st`` (None
   before the first collision); reads the device."""
+  if c.stock_path:
+    return CollisionStats({"path": "stock", "pairs": int(d.ncollision.numpy()[0]), "pairs_per_world": [],
+                           "dropped_pairs_per_world": [], "nonfinite_worlds": [],
+                           "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
+                           "dropped_contacts_per_world": [], "warm_start_misses": 0, "hfield_mprs_unqueued": 0})
   if st is None:
-    return CollisionStats({"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
+    return CollisionStats({"path": "plugin", "pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
                            "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
                            "hfield_mprs_unqueued": 0})
   from mjx_supportfield.heightfield import COUNT_UNQUEUED  # the heightfield module builds kernels on import
 
   broad = st.broad
   return CollisionStats({
+    "path": "plugin",
     "pairs": int(broad.npair.numpy()[0]),
     "pairs_per_world": np.minimum(broad.world_npair.numpy(), c.max_pairs).tolist(),
     "dropped_pairs_per_world": broad.ndropped.numpy().tolist(),

@@ -218,10 +218,53 @@ def test_more_pairs_than_threads_of_the_analytic_kernel():
               '<body pos="40 0 1.29"><freejoint/><geom type="sphere" size=".1"/></body>')
   xml = f"<mujoco><worldbody>{near}{touching}</worldbody></mujoco>"
   sim = load(xml, naconmax=4)
-  sf.install(sim.mjm, sim.m)
+  sf.install(sim.mjm, sim.m, sf.Options(stock_for_analytic_models=False))
   sf.collision(sim.m, sim.d)
   assert sf.get_collider(sim.m).stats(sim.d)["pairs"] == 12
   got = contacts(sim.d, 0)
   ref = np.array([sim.mjd.contact[i].dist for i in range(sim.mjd.ncon)])  # MuJoCo C
   assert got.n == len(ref) == 2
   np.testing.assert_allclose(np.sort(got.dist), np.sort(ref), atol=1e-6)
+
+
+# free capsules and spheres over a plane: MuJoCo's analytic pairs only
+_ANALYTIC_ONLY = "<mujoco><worldbody><geom type='plane' size='5 5 .1'/>" + "".join(
+  f"<body pos='{0.3 * k} {0.1 * (k % 2)} {0.1 + 0.12 * k}'><freejoint/>"
+  f"<geom type='{('capsule', 'sphere')[k % 2]}' size='.1 .15' euler='{20 * k} {35 * k} 0'/></body>"
+  for k in range(6)) + "</worldbody></mujoco>"
+
+
+@pytest.mark.parametrize("options, stock_path", [
+  ({}, True),
+  ({"stock_for_analytic_models": False}, False),
+  ({"broadphase": "nxn"}, False),
+  ({"contacts_per_world": 64}, False),  # 3 worlds x 64 rows
+])
+def test_analytic_only_model_collides_through_stock(options, stock_path):
+  """A model of analytic pairs only collides through MuJoCo Warp's own stage by default (the
+  plugin would run the same routines with more launches); the plugin's own pipeline, when asked
+  for, writes the same contacts."""
+  ref = load(_ANALYTIC_ONLY, nworld=3, naconmax=192)
+  sim = load(_ANALYTIC_ONLY, nworld=3, naconmax=192)
+  collider = sf.install(sim.mjm, sim.m, sf.Options(**options))
+  assert collider.stock_path == stock_path
+  for _ in range(20):
+    mjw.step(ref.m, ref.d)
+    mjw.step(sim.m, sim.d)
+  wp.copy(sim.d.qpos, ref.d.qpos)  # the same state, whatever the steps did
+  for s in (ref, sim):
+    mjw.kinematics(s.m, s.d)
+    mjw.collision(s.m, s.d)
+  records = contact_records(sim.d)
+  assert len(records) >= 6 and records == contact_records(ref.d)
+  stats = collider.stats(sim.d)
+  assert stats["path"] == ("stock" if stock_path else "plugin")
+  assert stats["pairs"] == (int(ref.d.ncollision.numpy()[0]) if stock_path else sum(stats["pairs_per_world"]))
+  assert ("MuJoCo Warp's own collision stage" in str(stats)) == stock_path
+
+
+def test_models_the_plugin_adds_to_keep_its_pipeline():
+  """Meshes (MPR), heightfields and non-convex meshes keep the plugin's pipeline."""
+  for scene in ("convex_pile", "terrain", "nonconvex"):
+    sim = load(scene)
+    assert not sf.install(sim.mjm, sim.m).stock_path, scene

@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
+from mjx_supportfield.hull_graph import hull_graph
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
@@ -35,15 +36,8 @@ class MeshSdf:
 
 def hull_triangles(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   """Triangles of MuJoCo's convex hull of a mesh (mesh vertex ids), or an empty array."""
-  adr = mjm.mesh_graphadr[meshid]
-  if adr < 0:
-    return np.zeros((0, 3), np.int32)
-  g = mjm.mesh_graph
-  nv, nf = int(g[adr]), int(g[adr + 1])
-  edges = np.asarray(g[adr + 2 + 2 * nv :])
-  ends = np.nonzero(edges == -1)[0][:nv]
-  start = adr + 2 + 2 * nv + int(ends[-1]) + 1
-  return np.asarray(g[start : start + 3 * nf], dtype=np.int32).reshape(nf, 3)
+  graph = hull_graph(mjm, meshid)
+  return np.zeros((0, 3), np.int32) if graph is None else graph.faces
 
 
 @wp.kernel(enable_backward=False)

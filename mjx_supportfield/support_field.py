@@ -21,6 +21,7 @@ import mujoco
 import numpy as np
 import warp as wp
 
+from mjx_supportfield.hull_graph import hull_graph
 from mjx_supportfield.support import CERTIFIED
 from mjx_supportfield.support import CORNERS_EXACT
 from mjx_supportfield.support import EXTRA_COUNT_SHIFT
@@ -68,25 +69,14 @@ class HullData:
 def mesh_hull(mjm: mujoco.MjModel, meshid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Hull vertex ids (within the mesh), neighbour counts and flat neighbour lists of a mesh.
 
-  Reads MuJoCo's convex-hull graph (numvert, numface, vert_edgeadr[nv], vert_globalid[nv],
-  -1-terminated neighbour lists, faces). A mesh without one uses all its vertices and no
-  neighbours (its queries then use the field or a scan).
+  From MuJoCo's convex-hull graph (see hull_graph). A mesh without one uses all its vertices
+  and no neighbours (its queries then use the field or a scan).
   """
-  adr = mjm.mesh_graphadr[meshid]
-  if adr < 0:
+  graph = hull_graph(mjm, meshid)
+  if graph is None:
     n = int(mjm.mesh_vertnum[meshid])
     return np.arange(n, dtype=np.int32), np.zeros(n, np.int32), np.zeros(0, np.int32)
-  g = mjm.mesh_graph
-  nv = int(g[adr])
-  edgeadr = np.asarray(g[adr + 2 : adr + 2 + nv], dtype=np.int64)
-  globalid = np.asarray(g[adr + 2 + nv : adr + 2 + 2 * nv], dtype=np.int32)
-  edges = np.asarray(g[adr + 2 + 2 * nv :])
-  ends = np.nonzero(edges == -1)[0][:nv]
-  # the lists are stored back to back, each ended by -1
-  if len(ends) < nv or edgeadr[0] != 0 or np.any(edgeadr[1:] != ends[:-1] + 1):
-    raise ValueError(f"mesh {meshid}: MuJoCo's convex-hull graph has an unexpected layout")
-  lists = edges[: ends[-1] + 1]
-  return globalid, (ends - edgeadr).astype(np.int32), lists[lists >= 0].astype(np.int32)
+  return graph.vert, graph.nbr_num, graph.nbr
 
 
 def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
@@ -98,13 +88,10 @@ def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   with a poor float32 normal still gives a plane the whole hull lies behind (it can only make a
   point's depth, the smallest distance to the planes, too large, never too small).
   """
-  adr = mjm.mesh_graphadr[meshid]
-  if adr < 0:
+  graph = hull_graph(mjm, meshid)
+  if graph is None:
     return np.zeros((0, 4), np.float32)
-  g = mjm.mesh_graph
-  nv, nf = int(g[adr]), int(g[adr + 1])
-  start = adr + 2 + 2 * nv + nv + 3 * nf  # after the header, edge addresses, global ids and edge lists
-  faces = np.asarray(g[start : start + 3 * nf], dtype=np.int64).reshape(nf, 3)
+  faces = graph.faces
   vert = np.asarray(mjm.mesh_vert[mjm.mesh_vertadr[meshid] : mjm.mesh_vertadr[meshid] + mjm.mesh_vertnum[meshid]],
                     dtype=np.float64)
   hull = vert[np.unique(faces)]

@@ -46,6 +46,8 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
+wp.set_module_options({"enable_backward": False})
+
 MARKER = "mjx_supportfield.nonconvex"  # custom text listing non-convex geom names
 EDGE_SAMPLES = 16  # most samples along one edge before bisecting
 BISECTIONS = 8
@@ -273,7 +275,7 @@ def pair_candidates(a: Shape, nc1: int, b: Shape, nc2: int, sdfs: SdfSet, ms: Me
   return cands
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def nonconvex_narrowphase(
   # Model:
   geom_type: wp.array(dtype=int),

@@ -19,6 +19,8 @@ from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
+wp.set_module_options({"enable_backward": False})
+
 PADDING = 0.2
 CACHE_DIR = os.path.join(os.path.expanduser("~"), ".cache", "mjx_supportfield", "sdf")
 
@@ -40,7 +42,7 @@ def hull_triangles(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   return np.zeros((0, 3), np.int32) if graph is None else graph.faces
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _bake(mesh: wp.uint64, lo: wp.vec3, cell: float, res: wp.vec3i, out: wp.array(dtype=float)):
   i, j, k = wp.tid()
   p = lo + cell * wp.vec3(float(i), float(j), float(k))

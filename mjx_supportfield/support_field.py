@@ -36,6 +36,8 @@ from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import hull_scan
 from mjx_supportfield.types import MeshSupport
 
+wp.set_module_options({"enable_backward": False})
+
 # candidate resolutions, coarse to fine (the cap Options.support_res is always a candidate)
 _RESOLUTIONS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 180, 256, 360, 512, 1024, 2048, 4096)
 _NCHECK_RANDOM = 1024  # random check directions per mesh, besides the in-cell samples
@@ -178,7 +180,7 @@ def cell_direction(u: float, v: float, res: int) -> wp.vec3:
   return wp.vec3(wp.sin(phi) * wp.cos(theta), wp.sin(phi) * wp.sin(theta), wp.cos(phi))
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _build_field(
   ms: MeshSupport, cell_mesh: wp.array(dtype=int), extremes: wp.array2d(dtype=int), field_out: wp.array(dtype=wp.uint16)
 ):
@@ -203,7 +205,7 @@ def _build_field(
     field_out[cell] = wp.uint16(hull_scan(ms, mesh, d))
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _check_field(
   ms: MeshSupport,
   check_mesh: wp.array(dtype=int),
@@ -363,7 +365,7 @@ def _unbeaten_neighbour(ms: MeshSupport, mesh: int, cand: _candidates, ncand: in
   return -1
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.array(dtype=int),
              extras_out: wp.array2d(dtype=int)):
   """Proves, per quad, which vertices its lookup must weigh to be exact.
@@ -416,14 +418,14 @@ def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.arra
     proof_out[cell] = 2
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _extras_size(proof: wp.array(dtype=int), size_out: wp.array(dtype=int)):
   """Entries a quad's extras list takes: its own vertex and its k extras."""
   cell = wp.tid()
   size_out[cell] = wp.where(proof[cell] > 2, proof[cell] - 1, 0)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _write_proofs(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof: wp.array(dtype=int),
                   extras: wp.array2d(dtype=int), offset: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16),
                   extra_out: wp.array(dtype=wp.uint16)):
@@ -447,7 +449,7 @@ def _write_proofs(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof: wp.arr
     field_out[cell] = wp.uint16(pointer | WITH_EXTRAS)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _mesh_extra_adr(field_adr: wp.array(dtype=int), offset: wp.array(dtype=int), total: int,
                     extra_adr_out: wp.array(dtype=int)):
   """Every mesh's lists start at the list offset of its first cell."""

@@ -40,6 +40,7 @@ from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import sample_point
 from mjx_supportfield.sdf import shape_sdf
 from mjx_supportfield.sdf import shape_sdf_grad
+from mjx_supportfield.support import GRID_DIRECTIONS
 from mjx_supportfield.support import box_corner
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_MODE_ID
@@ -194,7 +195,7 @@ def _samples(src: Shape, src_nonconvex: int, ms: MeshSupport, mesh_vertnum: wp.a
     if src_nonconvex:
       return mesh_vertnum[src.mesh]
     return ms.hull_num[src.mesh]
-  return 26  # cylinder, ellipsoid: support points in the 26 grid directions
+  return GRID_DIRECTIONS  # cylinder, ellipsoid: support points in the grid directions
 
 
 @wp.func

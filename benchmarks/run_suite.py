@@ -28,7 +28,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import mujoco
 import mujoco_warp as mjw
-import numpy as np
 import warp as wp
 
 HERE = os.path.dirname(os.path.abspath(__file__))

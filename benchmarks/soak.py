@@ -38,7 +38,6 @@ qvel and 6 more for qacc_warmstart, and zlib hardly shrinks them.
 """
 
 import argparse
-import hashlib
 import json
 import os
 import sys
@@ -56,14 +55,20 @@ sys.path.insert(0, HERE)
 import make_scenes  # noqa: E402
 
 from mjx_supportfield import bench  # noqa: E402
+from mjx_supportfield.checkpoint import FORMAT  # noqa: E402
+from mjx_supportfield.checkpoint import WARMSTART  # noqa: E402
+from mjx_supportfield.checkpoint import CheckpointError  # noqa: E402
+from mjx_supportfield.checkpoint import check_resume  # noqa: E402
+from mjx_supportfield.checkpoint import load_checkpoint  # noqa: E402
+from mjx_supportfield.checkpoint import read_state  # noqa: E402
+from mjx_supportfield.checkpoint import resume_start  # noqa: E402
+from mjx_supportfield.checkpoint import save_checkpoint  # noqa: E402
+from mjx_supportfield.checkpoint import scene_sha256  # noqa: E402
+from mjx_supportfield.checkpoint import write_state  # noqa: E402
 from mjx_supportfield.install import get_collider  # noqa: E402
 from mjx_supportfield.install import install  # noqa: E402
 
 SPEED = 0.05  # m/s (and rad/s) of the random initial velocities
-STATE = ("time", "qpos", "qvel", "act")  # per-world state a checkpoint always holds
-WARMSTART = "qacc_warmstart"  # held too, unless the checkpoint would grow past --save-max-mib
-FORMAT = 1  # checkpoint format version
-MIB = 1 << 20
 
 
 def energy(d) -> np.ndarray:
@@ -75,27 +80,6 @@ def fail(message: str):
   """Exits with ``message`` on stderr and status 2 (failed checks exit with 1)."""
   print(f"soak: {message}", file=sys.stderr)
   sys.exit(2)
-
-
-def scene_sha256(path: str) -> str:
-  """sha256 of the scene's XML text (the pile scenes hold their meshes inline)."""
-  with open(path, "rb") as f:
-    return hashlib.sha256(f.read()).hexdigest()
-
-
-def read_state(d, fields=STATE + (WARMSTART,)) -> dict:
-  """Host copies of the per-world state arrays ``fields`` of ``d``."""
-  return {f: getattr(d, f).numpy().copy() for f in fields}
-
-
-def write_state(d, state: dict):
-  """Writes the per-world arrays of ``state`` (as read_state gives them) into ``d``."""
-  for f, a in state.items():
-    dst = getattr(d, f)
-    if tuple(dst.shape) != a.shape:
-      raise ValueError(f"checkpoint's {f} has shape {a.shape}, the Data's {tuple(dst.shape)}")
-    if a.size:
-      dst.assign(a)
 
 
 def new_history() -> dict:
@@ -136,61 +120,6 @@ def fresh_start(mjm, m, nworld: int, nconmax_arg):
          "energy_reference_max": e_high, "potential_span": span,
          "energy_bound": max(float(e0.max()), e_high + kick) + 0.01 * abs(span)}
   return d, ref
-
-
-def load_checkpoint(path: str) -> tuple:
-  """(meta, per-world state arrays) of a checkpoint written by save_checkpoint."""
-  if not os.path.exists(path):
-    fail(f"no checkpoint at {path}")
-  with np.load(path, allow_pickle=False) as z:
-    meta = json.loads(str(z["meta"]))
-    state = {k[len("state_"):]: z[k] for k in z.files if k.startswith("state_")}
-  if meta.get("format") != FORMAT:
-    fail(f"{path}: checkpoint format {meta.get('format')}, this script reads {FORMAT}")
-  return meta, state
-
-
-def check_resume(meta: dict, path: str, scene: str, sha: str, nworld, nconmax):
-  """Exits with an error when the run asked for is not the checkpoint's."""
-  bad = []
-  if sha != meta["scene_sha256"]:
-    bad.append(f"scene {scene} (sha256 {sha[:12]}) is not the checkpoint's {meta['scene']}"
-               f" (sha256 {meta['scene_sha256'][:12]})")
-  if nworld is not None and nworld != meta["nworld"]:
-    bad.append(f"--nworld {nworld} but the checkpoint has {meta['nworld']} worlds")
-  if nconmax is not None and nconmax != meta["ref"]["nconmax"]:
-    bad.append(f"--nconmax {nconmax} but the checkpoint used {meta['ref']['nconmax']}")
-  if bad:
-    fail(f"cannot resume from {path}: " + "; ".join(bad))
-  versions = {"warp": wp.__version__, "mujoco": mujoco.__version__}
-  if meta["versions"] != versions:
-    print(f"soak: warning: {path} was written with {meta['versions']}, this run has {versions}", file=sys.stderr)
-
-
-def resume_start(mjm, m, meta: dict, state: dict):
-  """Fresh Data holding the checkpoint's state, its derived quantities recomputed."""
-  nconmax = meta["ref"]["nconmax"]
-  mjd = mujoco.MjData(mjm)
-  mujoco.mj_forward(mjm, mjd)
-  d = mjw.put_data(mjm, mjd, nworld=meta["nworld"], nconmax=nconmax, njmax=6 * nconmax)
-  write_state(d, state)
-  mjw.forward(m, d)  # leaves qacc_warmstart alone: the next step starts from the saved one
-  return d
-
-
-def save_checkpoint(path: str, d, meta: dict, max_mib: float) -> dict:
-  """Writes ``meta`` and the state of ``d`` to ``path`` (through a temporary file, so an existing
-  checkpoint is replaced whole or not at all); returns what was written."""
-  state = read_state(d, STATE)
-  warm = read_state(d, (WARMSTART,))
-  if sum(a.nbytes for a in state.values()) + warm[WARMSTART].nbytes <= max_mib * MIB:
-    state.update(warm)
-  meta = dict(meta, warmstart_saved=WARMSTART in state)
-  tmp = path + ".tmp"
-  with open(tmp, "wb") as f:
-    np.savez_compressed(f, meta=np.array(json.dumps(meta)), **{f"state_{k}": v for k, v in state.items()})
-  os.replace(tmp, path)
-  return {"path": path, "mib": os.path.getsize(path) / MIB, "warmstart_saved": WARMSTART in state}
 
 
 def check_chunk(d, collider, nworld: int, limit: float) -> tuple:
@@ -284,13 +213,19 @@ def main():
   start = time.perf_counter()
   args = parse_args()
   wp.config.log_level = wp.LOG_WARNING
-  meta, state = load_checkpoint(args.resume) if args.resume else (None, None)
-  scene = scene_path(args, meta)
-  if not os.path.exists(scene):
-    make_scenes.main()
-  sha = scene_sha256(scene)
-  if meta is not None:
-    check_resume(meta, args.resume, scene, sha, args.nworld, args.nconmax)
+  try:
+    meta, state = load_checkpoint(args.resume) if args.resume else (None, None)
+    scene = scene_path(args, meta)
+    if not os.path.exists(scene):
+      make_scenes.main()
+    sha = scene_sha256(scene)
+    if meta is not None:
+      check_resume(meta, args.resume, scene, sha, args.nworld, args.nconmax)
+  except CheckpointError as e:
+    fail(str(e))
+  versions = {"warp": wp.__version__, "mujoco": mujoco.__version__}
+  if meta is not None and meta["versions"] != versions:
+    print(f"soak: warning: {args.resume} was written with {meta['versions']}, this run has {versions}", file=sys.stderr)
 
   mjm = mujoco.MjModel.from_xml_path(scene)
   mjm.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY

@@ -5,6 +5,8 @@ from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.types import FAR  # a plane's extent: finite, so sums and comparisons stay defined
 
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.func
 def _is_finite(p: wp.vec3, r: wp.mat33) -> bool:
@@ -29,7 +31,7 @@ def _plane_box(pos: wp.vec3, normal: wp.vec3, inflate: float) -> tuple[wp.vec3, 
   return lo, hi
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def update_aabbs(
   # Model:
   geom_type: wp.array(dtype=int),

@@ -37,6 +37,10 @@ from mjx_supportfield.aabb import update_aabbs
 from mjx_supportfield.routing import PairQueues
 from mjx_supportfield.routing import queue_pair
 
+# the factories' module="unique" kernels take Warp's global options, not this module's:
+# they turn adjoints off themselves
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.struct
 class PairOutputs:
@@ -202,7 +206,7 @@ def _pair_test(
   return pair_test
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def sort_endpoints(
   ngeom: int,
   axis: int,
@@ -317,7 +321,7 @@ def sweep_kernel(static_key: tuple, axis: int):
   return sweep
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def clamp_counts(max_pairs: int, world_npair: wp.array(dtype=int), world_count_out: wp.array(dtype=int)):
   """Pairs kept per world (the counter also counts the dropped ones)."""
   worldid = wp.tid()
@@ -416,7 +420,7 @@ def listed_pairs_kernel(static_key: tuple, direct: bool):
   return listed_pairs
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def compact_pairs(
   # Model:
   geom_type: wp.array(dtype=int),

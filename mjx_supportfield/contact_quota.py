@@ -24,6 +24,8 @@ from mujoco_warp._src.types import vec5
 from mjx_supportfield import contact_sort
 from mjx_supportfield.contact_sort import ContactFields
 
+wp.set_module_options({"enable_backward": False})
+
 # bytes of one row of each contact field
 _INT = wp.constant(wp.types.type_size_in_bytes(wp.int32))
 _FLOAT = wp.constant(wp.types.type_size_in_bytes(wp.float32))
@@ -148,7 +150,7 @@ def check_fits(per_world: int, nworld: int, naconmax: int) -> None:
     )
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def start_worlds(
   per_world: int,
   # Out:
@@ -166,7 +168,7 @@ def start_worlds(
     nwarned[0] = 0
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _kept_per_world(
   per_world: int,
   naconmax: int,
@@ -212,7 +214,7 @@ def _kept_per_world(
         )
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _pack(
   per_world: int,
   naconmax: int,
@@ -248,7 +250,7 @@ def _pack(
     efc_address[j, k] = -1
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _packed_count(
   per_world: int,
   naconmax: int,

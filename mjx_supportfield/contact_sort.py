@@ -16,6 +16,8 @@ from typing import Optional
 import warp as wp
 from mujoco_warp._src.types import vec5
 
+wp.set_module_options({"enable_backward": False})
+
 # contact fields the collision stage writes (efc_address is -1 and surfacevel is computed later)
 FIELDS = (
   "dist", "pos", "frame", "includemargin", "friction", "solref", "solreffriction", "solimp", "dim", "geom", "flex",
@@ -99,7 +101,7 @@ def make_buffers(d, ngeom: int, fields: Optional[tuple] = None) -> SortBuffers:
   )
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _sort_keys(
   ngeom1: int,
   nkey: wp.int64,
@@ -143,14 +145,14 @@ def _move(src: ContactFields, i: int, dst: ContactFields, j: int):
   dst.adhesion[j] = src.adhesion[i]
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _copy(naconmax: int, nacon: wp.array(dtype=int), src: ContactFields, dst: ContactFields):
   i = wp.tid()
   if i < wp.min(nacon[0], naconmax):
     _move(src, i, dst, i)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _gather(naconmax: int, nacon: wp.array(dtype=int), index: wp.array(dtype=wp.int32), src: ContactFields,
             dst: ContactFields):
   """Slot i of every contact field takes slot index[i] of the copy."""

@@ -16,6 +16,8 @@ import weakref
 import mujoco
 import numpy as np
 
+from mjx_supportfield.hull_graph import hull_graph
+
 PLANE_NORMAL_COS = 1.0 - 1e-8  # a direction within ~1.4e-4 rad of a plane's normal is taken as it
 ELLIPSOID_BISECTIONS = 200  # halvings of the Lagrange multiplier's bracket: float64 converges long before
 ON_FACE = 1e-9  # a point this close to a polytope's face (relative to its size) is on it
@@ -104,21 +106,15 @@ def mesh_vertices(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
 def hull_faces(mjm: mujoco.MjModel, meshid: int) -> tuple[np.ndarray, np.ndarray]:
   """MuJoCo's convex hull of a mesh: (hull vertex ids, triangles as mesh vertex ids (nface, 3)).
 
-  From ``mesh_graph`` (numvert, numface, vert_edgeadr[nv], vert_globalid[nv], edge_localid[nv +
-  3 nf], face_globalid[3 nf]); a mesh without a graph gets its hull from scipy.
+  From ``mesh_graph`` (see hull_graph); a mesh without a graph gets its hull from scipy.
   """
-  adr = int(mjm.mesh_graphadr[meshid])
-  if adr < 0:
+  graph = hull_graph(mjm, meshid)
+  if graph is None:
     from scipy.spatial import ConvexHull  # only for meshes MuJoCo built no hull for
 
     hull = ConvexHull(mesh_vertices(mjm, meshid))
     return np.asarray(hull.vertices), np.asarray(hull.simplices)
-  graph = mjm.mesh_graph
-  nv, nf = int(graph[adr]), int(graph[adr + 1])
-  start = adr + 2
-  vert_ids = np.asarray(graph[start + nv : start + 2 * nv])
-  faces = np.asarray(graph[start + 3 * nv + 3 * nf : start + 3 * nv + 6 * nf]).reshape(nf, 3)
-  return vert_ids, faces
+  return graph.vert, graph.faces
 
 
 def mesh_hull(mjm: mujoco.MjModel, meshid: int) -> Polytope:

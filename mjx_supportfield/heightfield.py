@@ -87,6 +87,8 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
+wp.set_module_options({"enable_backward": False})
+
 MAX_CELLS = 4096  # cells visited per pair (a 64 x 64 window)
 # the passes' MPR reruns start half their depth behind the origin, not mpr.BEHIND x scale: from
 # farther back they converge onto a triangle prism's rim, where the normal leans toward a side
@@ -380,7 +382,7 @@ def _queue_cell(job_out: wp.array(dtype=wp.vec2i), slot: int, tp: TerrainPair, c
   return out
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def hfield_jobs(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -484,7 +486,7 @@ def hfield_jobs(
     hfield_pair_out[slot] = tp
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def hfield_kind_start(
   # In:
   hfield_count_in: wp.array(dtype=int),
@@ -498,7 +500,7 @@ def hfield_kind_start(
     start += hfield_count_in[COUNT_KIND + kind]
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def hfield_order(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -529,7 +531,7 @@ def hfield_order(
         point += 1
 
 
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
 def hfield_mpr(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -576,7 +578,7 @@ def hfield_mpr(
     normal_out[j] = normal
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def hfield_contacts(
   # Model:
   geom_type: wp.array(dtype=int),

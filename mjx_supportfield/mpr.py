@@ -269,7 +269,7 @@ def mpr_refined_from(
   k = int(0)  # next local axis to check
   nrerun = int(0)  # reruns along the normal so far
   # one MPR call site for the reruns and the axis checks keeps the kernels' stack small
-  for _ in range(refine + 12):
+  for _ in range(refine + LOCAL_AXES):
     u = wp.vec3(best.normal)
     start = float(best.depth)
     if refining and (nrerun >= refine or best.depth <= 1.0e-6 * scale):
@@ -278,7 +278,7 @@ def mpr_refined_from(
       if not deep:
         break
       found = bool(False)
-      while k < 12 and not found:
+      while k < LOCAL_AXES and not found:
         u = _axis(a, b, k)
         k += 1
         start = wp.dot(_support(a, b, ms, u, mode).v, u)
@@ -324,11 +324,12 @@ def behind_origin(
 
 
 DEEP_RATIO = 0.1  # MPR depths beyond this x the pair's scale are checked along the shapes' axes
+LOCAL_AXES = 12  # the signed local axes of both shapes such a depth is checked along (_axis)
 
 
 @wp.func
 def _axis(a: Shape, b: Shape, k: int) -> wp.vec3:
-  """The k-th of the 12 signed local axes of A (k < 6) and B."""
+  """The k-th of the LOCAL_AXES signed local axes of A (k < 6) and B."""
   rot = a.rot
   if k >= 6:
     rot = b.rot

@@ -39,6 +39,8 @@ from mjx_supportfield.shapes import posed_pair
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.func
 def _queued_patch(
@@ -111,7 +113,7 @@ def _queued_tilt(
   return a, b, scale, res, tilt_rotation(res.normal, mc_perturbation, j % NPERTURB, j // NPERTURB)
 
 
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
 def face_pair_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -166,7 +168,7 @@ def face_pair_kernel(
       face_faces[slot] = faces
 
 
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
 def manifold_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -293,7 +295,7 @@ def manifold_kernel(
       )
 
 
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
 def tilt_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -346,7 +348,7 @@ def tilt_kernel(
       tilt_queue[wp.atomic_add(tilt_count, 0, 1)] = j
 
 
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
 def tilt_mpr_kernel(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -394,7 +396,7 @@ def tilt_mpr_kernel(
     tilt_result[q, j % nattempt] = tilt_mpr(a, b, ms, support_mode, res, scale, tolerance, iterations, rot)
 
 
-@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
 def patch_kernel(
   # Model:
   geom_type: wp.array(dtype=int),

@@ -52,6 +52,10 @@ from mjx_supportfield.shapes import posed_pair
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 
+# the factories' module="unique" kernels take Warp's global options, not this module's:
+# they turn adjoints off themselves
+wp.set_module_options({"enable_backward": False})
+
 
 # register cap of the MPR, GJK and multi-contact kernels: uncapped they sit at 255 registers,
 # which leaves 8 warps an SM to hide their memory latency; at 128 (16 warps) they spill a few
@@ -326,7 +330,7 @@ def _apart(
   return apart_along_centres(a, b, ms, support_mode, scale)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def sift_mpr_pairs(
   # Model:
   geom_type: wp.array(dtype=int),

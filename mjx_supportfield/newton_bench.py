@@ -23,6 +23,8 @@ import mujoco_warp as mjw
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})
+
 INSTALL_HINT = "pip install mjx-supportfield[newton]"
 BROAD_PHASES = ("nxn", "sap", "explicit")
 # poses (MuJoCo Warp steps) per captured graph, as bench's collision-in-steps timing
@@ -276,7 +278,7 @@ def pose_mismatches(world: NewtonWorld, mjm: mujoco.MjModel, mjd: mujoco.MjData,
   return bad
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _place_bodies(xpos: wp.array2d(dtype=wp.vec3), xquat: wp.array2d(dtype=wp.quat), body_world: wp.array(dtype=int),
                   mj_body: wp.array(dtype=int), body_q: wp.array(dtype=wp.transform)):
   i = wp.tid()
@@ -285,7 +287,7 @@ def _place_bodies(xpos: wp.array2d(dtype=wp.vec3), xquat: wp.array2d(dtype=wp.qu
   body_q[i] = wp.transform(xpos[world, b], wp.quat(q[1], q[2], q[3], q[0]))
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _gather_joint_q(qpos: wp.array2d(dtype=float), coord_world: wp.array(dtype=int), coord_src: wp.array(dtype=int),
                     joint_q: wp.array(dtype=float)):
   i = wp.tid()

@@ -40,11 +40,14 @@ from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import sample_point
 from mjx_supportfield.sdf import shape_sdf
 from mjx_supportfield.sdf import shape_sdf_grad
+from mjx_supportfield.support import GRID_DIRECTIONS
 from mjx_supportfield.support import box_corner
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+
+wp.set_module_options({"enable_backward": False})
 
 MARKER = "mjx_supportfield.nonconvex"  # custom text listing non-convex geom names
 EDGE_SAMPLES = 16  # most samples along one edge before bisecting
@@ -192,7 +195,7 @@ def _samples(src: Shape, src_nonconvex: int, ms: MeshSupport, mesh_vertnum: wp.a
     if src_nonconvex:
       return mesh_vertnum[src.mesh]
     return ms.hull_num[src.mesh]
-  return 26  # cylinder, ellipsoid: support points in the 26 grid directions
+  return GRID_DIRECTIONS  # cylinder, ellipsoid: support points in the grid directions
 
 
 @wp.func
@@ -273,7 +276,7 @@ def pair_candidates(a: Shape, nc1: int, b: Shape, nc2: int, sdfs: SdfSet, ms: Me
   return cands
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def nonconvex_narrowphase(
   # Model:
   geom_type: wp.array(dtype=int),

@@ -13,12 +13,19 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
+from mjx_supportfield.hull_graph import hull_graph
+from mjx_supportfield.support import GRID_DIRECTIONS
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
+wp.set_module_options({"enable_backward": False})
+
 PADDING = 0.2
+# the distance of a point to a shape without an SDF, and the bake's search radius: past any
+# depth a contact could have
+NO_SDF = 1.0e6
 CACHE_DIR = os.path.join(os.path.expanduser("~"), ".cache", "mjx_supportfield", "sdf")
 
 
@@ -35,23 +42,16 @@ class MeshSdf:
 
 def hull_triangles(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   """Triangles of MuJoCo's convex hull of a mesh (mesh vertex ids), or an empty array."""
-  adr = mjm.mesh_graphadr[meshid]
-  if adr < 0:
-    return np.zeros((0, 3), np.int32)
-  g = mjm.mesh_graph
-  nv, nf = int(g[adr]), int(g[adr + 1])
-  edges = np.asarray(g[adr + 2 + 2 * nv :])
-  ends = np.nonzero(edges == -1)[0][:nv]
-  start = adr + 2 + 2 * nv + int(ends[-1]) + 1
-  return np.asarray(g[start : start + 3 * nf], dtype=np.int32).reshape(nf, 3)
+  graph = hull_graph(mjm, meshid)
+  return np.zeros((0, 3), np.int32) if graph is None else graph.faces
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _bake(mesh: wp.uint64, lo: wp.vec3, cell: float, res: wp.vec3i, out: wp.array(dtype=float)):
   i, j, k = wp.tid()
   p = lo + cell * wp.vec3(float(i), float(j), float(k))
-  q = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e6)
-  d = float(1.0e6)
+  q = wp.mesh_query_point_sign_winding_number(mesh, p, NO_SDF)
+  d = float(NO_SDF)
   if q.result:
     d = q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
   out[(k * res[1] + j) * res[0] + i] = d
@@ -160,16 +160,16 @@ def primitive_sdf(gtype: int, size: wp.vec3, p: wp.vec3) -> float:
     k0 = wp.length(wp.cw_div(p, size))
     k1 = wp.length(wp.cw_div(p, wp.cw_mul(size, size)))
     return k0 * (k0 - 1.0) / wp.max(k1, 1.0e-12)
-  return 1.0e6
+  return NO_SDF
 
 
 @wp.func
 def shape_sdf(s: Shape, sdf: MeshSdf, p_world: wp.vec3) -> float:
-  """Signed distance of a world point to a posed shape (1e6 for a mesh without a baked SDF)."""
+  """Signed distance of a world point to a posed shape (NO_SDF for a mesh without a baked SDF)."""
   p = wp.transpose(s.rot) @ (p_world - s.pos)
   if s.gtype == GeomType.MESH:
     if sdf.res[s.mesh][0] == 0:
-      return 1.0e6
+      return NO_SDF
     return mesh_sdf_value(sdf, s.mesh, p)
   return primitive_sdf(s.gtype, s.size, p)
 
@@ -201,13 +201,13 @@ class SdfContact:
 
 @wp.func
 def sample_point(s: Shape, ms: MeshSupport, mode: int, n: int) -> wp.vec3:
-  """Sample n of a shape: its hull vertices (meshes), else support points in the 26 grid
-  directions; the last sample is the interior point (world frame)."""
+  """Sample n of a shape: its hull vertices (meshes), else support points in the GRID_DIRECTIONS;
+  the last sample is the interior point (world frame)."""
   if s.gtype == GeomType.MESH:
     if n < ms.hull_num[s.mesh]:
       return s.pos + s.rot @ hull_point(ms, s.mesh, n)
     return s.center
-  if n == 26:
+  if n == GRID_DIRECTIONS:
     return s.center
   m = wp.where(n >= 13, n + 1, n)  # skip the grid's centre
   d = wp.vec3(float(m % 3 - 1), float((m // 3) % 3 - 1), float(m // 9 - 1))
@@ -226,7 +226,7 @@ def sdf_contact(a: Shape, b: Shape, ms: MeshSupport, sdf: MeshSdf, mode: int, h:
     if side == 1:
       src = b
       dst = a
-    nsample = 27
+    nsample = GRID_DIRECTIONS + 1
     if src.gtype == GeomType.MESH:
       nsample = ms.hull_num[src.mesh] + 1
     for n in range(nsample):

@@ -11,8 +11,10 @@ from mujoco_warp._src import collision_driver
 
 from mjx_supportfield import warmstart
 
+wp.set_module_options({"enable_backward": False})
 
-@wp.kernel(enable_backward=False)
+
+@wp.kernel
 def start_collision(
   # In:
   incremental: bool,

@@ -31,6 +31,9 @@ PROOF_MASK = 0xC000
 INDEX_MASK = 0x3FFF
 EXTRA_COUNT_SHIFT = 14
 MAX_EXTRAS = 3  # extra vertices a quad may list (2 bits of count)
+# the 26 directions from the centre of a 3 x 3 x 3 grid to its other points: the seeds of a
+# field's hill climbs and the sample points of a shape without vertices of its own
+GRID_DIRECTIONS = 26
 
 
 @wp.func

@@ -21,9 +21,11 @@ import mujoco
 import numpy as np
 import warp as wp
 
+from mjx_supportfield.hull_graph import hull_graph
 from mjx_supportfield.support import CERTIFIED
 from mjx_supportfield.support import CORNERS_EXACT
 from mjx_supportfield.support import EXTRA_COUNT_SHIFT
+from mjx_supportfield.support import GRID_DIRECTIONS
 from mjx_supportfield.support import INDEX_MASK
 from mjx_supportfield.support import MAX_EXTRAS
 from mjx_supportfield.support import PROOF_MASK
@@ -34,6 +36,8 @@ from mjx_supportfield.support import hill_climb
 from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import hull_scan
 from mjx_supportfield.types import MeshSupport
+
+wp.set_module_options({"enable_backward": False})
 
 # candidate resolutions, coarse to fine (the cap Options.support_res is always a candidate)
 _RESOLUTIONS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 180, 256, 360, 512, 1024, 2048, 4096)
@@ -68,25 +72,14 @@ class HullData:
 def mesh_hull(mjm: mujoco.MjModel, meshid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Hull vertex ids (within the mesh), neighbour counts and flat neighbour lists of a mesh.
 
-  Reads MuJoCo's convex-hull graph (numvert, numface, vert_edgeadr[nv], vert_globalid[nv],
-  -1-terminated neighbour lists, faces). A mesh without one uses all its vertices and no
-  neighbours (its queries then use the field or a scan).
+  From MuJoCo's convex-hull graph (see hull_graph). A mesh without one uses all its vertices
+  and no neighbours (its queries then use the field or a scan).
   """
-  adr = mjm.mesh_graphadr[meshid]
-  if adr < 0:
+  graph = hull_graph(mjm, meshid)
+  if graph is None:
     n = int(mjm.mesh_vertnum[meshid])
     return np.arange(n, dtype=np.int32), np.zeros(n, np.int32), np.zeros(0, np.int32)
-  g = mjm.mesh_graph
-  nv = int(g[adr])
-  edgeadr = np.asarray(g[adr + 2 : adr + 2 + nv], dtype=np.int64)
-  globalid = np.asarray(g[adr + 2 + nv : adr + 2 + 2 * nv], dtype=np.int32)
-  edges = np.asarray(g[adr + 2 + 2 * nv :])
-  ends = np.nonzero(edges == -1)[0][:nv]
-  # the lists are stored back to back, each ended by -1
-  if len(ends) < nv or edgeadr[0] != 0 or np.any(edgeadr[1:] != ends[:-1] + 1):
-    raise ValueError(f"mesh {meshid}: MuJoCo's convex-hull graph has an unexpected layout")
-  lists = edges[: ends[-1] + 1]
-  return globalid, (ends - edgeadr).astype(np.int32), lists[lists >= 0].astype(np.int32)
+  return graph.vert, graph.nbr_num, graph.nbr
 
 
 def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
@@ -98,13 +91,10 @@ def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   with a poor float32 normal still gives a plane the whole hull lies behind (it can only make a
   point's depth, the smallest distance to the planes, too large, never too small).
   """
-  adr = mjm.mesh_graphadr[meshid]
-  if adr < 0:
+  graph = hull_graph(mjm, meshid)
+  if graph is None:
     return np.zeros((0, 4), np.float32)
-  g = mjm.mesh_graph
-  nv, nf = int(g[adr]), int(g[adr + 1])
-  start = adr + 2 + 2 * nv + nv + 3 * nf  # after the header, edge addresses, global ids and edge lists
-  faces = np.asarray(g[start : start + 3 * nf], dtype=np.int64).reshape(nf, 3)
+  faces = graph.faces
   vert = np.asarray(mjm.mesh_vert[mjm.mesh_vertadr[meshid] : mjm.mesh_vertadr[meshid] + mjm.mesh_vertnum[meshid]],
                     dtype=np.float64)
   hull = vert[np.unique(faces)]
@@ -191,11 +181,11 @@ def cell_direction(u: float, v: float, res: int) -> wp.vec3:
   return wp.vec3(wp.sin(phi) * wp.cos(theta), wp.sin(phi) * wp.sin(theta), wp.cos(phi))
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _build_field(
   ms: MeshSupport, cell_mesh: wp.array(dtype=int), extremes: wp.array2d(dtype=int), field_out: wp.array(dtype=wp.uint16)
 ):
-  """Support vertex of each cell's direction: hill-climb from the best of the mesh's 26 extreme
+  """Support vertex of each cell's direction: hill-climb from the best of the mesh's extreme
   vertices (exact on a hull graph, and O(climb) instead of O(vertices)); scan without a graph."""
   cell = wp.tid()
   mesh = cell_mesh[cell]
@@ -204,7 +194,7 @@ def _build_field(
   d = cell_direction(float(local % res), float(local // res), res)
   start = extremes[mesh, 0]
   start_dot = wp.dot(hull_point(ms, mesh, start), d)
-  for k in range(1, 26):
+  for k in range(1, GRID_DIRECTIONS):
     e = extremes[mesh, k]
     ed = wp.dot(hull_point(ms, mesh, e), d)
     if ed > start_dot:
@@ -216,7 +206,7 @@ def _build_field(
     field_out[cell] = wp.uint16(hull_scan(ms, mesh, d))
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _check_field(
   ms: MeshSupport,
   check_mesh: wp.array(dtype=int),
@@ -317,7 +307,15 @@ def min_on_quad(a: wp.vec3, th0: float, th1: float, ph0: float, ph1: float) -> f
 
 
 _PROOF_SPLITS = 8  # a quad the candidates do not cover as a whole is retried in 2x2, 4x4, 8x8 parts
-_MAX_CANDIDATES = 4 + MAX_EXTRAS
+_QUAD_CORNERS = 4  # a quad's corner cells: the candidates a proof starts from
+_MAX_CANDIDATES = _QUAD_CORNERS + MAX_EXTRAS
+# a quad's proof code (_certify): 0 unproven, and _PROOF_CORNERS + k for the corners and k extras
+_UNPROVEN = 0
+_PROOF_CERTIFIED = 1
+_PROOF_CORNERS = 2
+# _unbeaten_neighbour's answers besides a vertex
+_ALL_BEATEN = -1
+_NO_GRAPH = -2
 _candidates = wp.types.vector(length=_MAX_CANDIDATES, dtype=int)
 
 
@@ -363,20 +361,21 @@ def _beaten_on_quad(ms: MeshSupport, mesh: int, cand: _candidates, ncand: int, n
 @wp.func
 def _unbeaten_neighbour(ms: MeshSupport, mesh: int, cand: _candidates, ncand: int, th0: float, th1: float,
                         ph0: float, ph1: float) -> int:
-  """A hull neighbour of a candidate that no candidate is proven to beat over the quad, or -1
-  when there is none; -2 when a candidate has no hull graph to prove anything with."""
+  """A hull neighbour of a candidate that no candidate is proven to beat over the quad,
+  _ALL_BEATEN when there is none, _NO_GRAPH when a candidate has no hull graph to prove anything
+  with."""
   for c in range(ncand):
     g = ms.hull_adr[mesh] + cand[c]
     if ms.nbr_num[g] == 0:
-      return -2
+      return _NO_GRAPH
     for k in range(ms.nbr_num[g]):
       n = ms.nbr[ms.nbr_adr[g] + k]
       if not _beaten_on_quad(ms, mesh, cand, ncand, n, th0, th1, ph0, ph1):
         return n
-  return -1
+  return _ALL_BEATEN
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.array(dtype=int),
              extras_out: wp.array2d(dtype=int)):
   """Proves, per quad, which vertices its lookup must weigh to be exact.
@@ -390,7 +389,7 @@ def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.arra
   2 CORNERS_EXACT, 2 + k the corners and the k vertices in extras_out suffice.
   """
   cell = wp.tid()
-  proof_out[cell] = 0
+  proof_out[cell] = _UNPROVEN
   mesh = cell_mesh[cell]
   res = ms.field_res[mesh]
   local = cell - ms.field_adr[mesh]
@@ -408,35 +407,35 @@ def _certify(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof_out: wp.arra
   th1 = th0 + 2.0 * wp.pi / float(res)
   ph0 = wp.pi * float(j) / float(res - 1)
   ph1 = wp.pi * float(j + 1) / float(res - 1)
-  ncand = int(4)
+  ncand = int(_QUAD_CORNERS)
   while ncand <= _MAX_CANDIDATES:
     n = _unbeaten_neighbour(ms, mesh, cand, ncand, th0, th1, ph0, ph1)
-    if n == -2:
+    if n == _NO_GRAPH:
       return
-    if n == -1:
+    if n == _ALL_BEATEN:
       break
     if ncand == _MAX_CANDIDATES:
       return
     cand[ncand] = n
     ncand += 1
-  if ncand > 4:
-    proof_out[cell] = ncand - 2
-    for k in range(ncand - 4):
-      extras_out[cell, k] = cand[4 + k]
+  if ncand > _QUAD_CORNERS:
+    proof_out[cell] = _PROOF_CORNERS + ncand - _QUAD_CORNERS
+    for k in range(ncand - _QUAD_CORNERS):
+      extras_out[cell, k] = cand[_QUAD_CORNERS + k]
   elif cand[1] == cand[0] and cand[2] == cand[0] and cand[3] == cand[0]:
-    proof_out[cell] = 1
+    proof_out[cell] = _PROOF_CERTIFIED
   else:
-    proof_out[cell] = 2
+    proof_out[cell] = _PROOF_CORNERS
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _extras_size(proof: wp.array(dtype=int), size_out: wp.array(dtype=int)):
   """Entries a quad's extras list takes: its own vertex and its k extras."""
   cell = wp.tid()
-  size_out[cell] = wp.where(proof[cell] > 2, proof[cell] - 1, 0)
+  size_out[cell] = wp.where(proof[cell] > _PROOF_CORNERS, proof[cell] - _PROOF_CORNERS + 1, 0)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _write_proofs(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof: wp.array(dtype=int),
                   extras: wp.array2d(dtype=int), offset: wp.array(dtype=int), field_out: wp.array(dtype=wp.uint16),
                   extra_out: wp.array(dtype=wp.uint16)):
@@ -444,23 +443,23 @@ def _write_proofs(ms: MeshSupport, cell_mesh: wp.array(dtype=int), proof: wp.arr
   cell = wp.tid()
   code = proof[cell]
   v = int(field_out[cell])
-  if code == 1:
+  if code == _PROOF_CERTIFIED:
     field_out[cell] = wp.uint16(v | CERTIFIED)
-  elif code == 2:
+  elif code == _PROOF_CORNERS:
     field_out[cell] = wp.uint16(v | CORNERS_EXACT)
-  elif code > 2:
+  elif code > _PROOF_CORNERS:
     mesh = cell_mesh[cell]
     start = offset[cell]
     pointer = start - offset[ms.field_adr[mesh]]
     if pointer > INDEX_MASK:
       return  # the mesh's lists outgrew 14-bit pointers: this quad stays unproven (it climbs)
-    extra_out[start] = wp.uint16(v | ((code - 2) << EXTRA_COUNT_SHIFT))
-    for k in range(code - 2):
+    extra_out[start] = wp.uint16(v | ((code - _PROOF_CORNERS) << EXTRA_COUNT_SHIFT))
+    for k in range(code - _PROOF_CORNERS):
       extra_out[start + 1 + k] = wp.uint16(extras[cell, k])
     field_out[cell] = wp.uint16(pointer | WITH_EXTRAS)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def _mesh_extra_adr(field_adr: wp.array(dtype=int), offset: wp.array(dtype=int), total: int,
                     extra_adr_out: wp.array(dtype=int)):
   """Every mesh's lists start at the list offset of its first cell."""
@@ -488,9 +487,9 @@ def _prove(ms: MeshSupport, cells: wp.array, device):
 
 
 def extreme_vertices(hd: HullData, vert: np.ndarray, vertadr: np.ndarray) -> np.ndarray:
-  """Per mesh, the local hull indices of the extreme vertices in the 26 grid directions."""
+  """Per mesh, the local hull indices of the extreme vertices in the GRID_DIRECTIONS."""
   dirs = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)], float)
-  out = np.zeros((len(hd.hull_num), 26), np.int32)
+  out = np.zeros((len(hd.hull_num), GRID_DIRECTIONS), np.int32)
   for mesh, (adr, num) in enumerate(zip(hd.hull_adr, hd.hull_num)):
     if num:
       pts = vert[vertadr[mesh] + hd.hull_vert[adr : adr + num]]

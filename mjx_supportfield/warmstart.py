@@ -18,6 +18,8 @@ import dataclasses
 import numpy as np
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})
+
 NEVER = -(1 << 30)  # stamp of a slot never written
 MAX_SLOTS = 1024  # per world: bounds the memory at nworld x 1024 x 24 bytes
 _FIBONACCI = wp.constant(wp.uint32(2654435769))  # 2^32 / golden ratio
@@ -108,7 +110,7 @@ def insert(
     s = (s + 1) & (nslot - 1)
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel
 def forget_worlds(reset: wp.array(dtype=bool), sap_init: wp.array(dtype=int), slot_stamp: wp.array2d(dtype=int)):
   """Drops the history of the worlds ``reset`` marks: their cached normals and their saved
   sweep-and-prune order (rebuilt from scratch on the next call), as for a fresh Data."""

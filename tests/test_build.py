@@ -9,14 +9,20 @@ heightfield's MPR job and cell tests: in the queue's kernels and in the contact 
 runs the jobs the queue had no room for).
 """
 
+import importlib
+import pkgutil
 import re
 
 import pytest
 import warp as wp
 from warp._src.context import ModuleBuilder
 
+import mjx_supportfield
+from mjx_supportfield import broadphase
 from mjx_supportfield import heightfield
+from mjx_supportfield import narrowphase
 from mjx_supportfield import nonconvex
+from mjx_supportfield import routing
 
 
 def _call_sites(kernel, func: str) -> int:
@@ -40,3 +46,32 @@ def _call_sites(kernel, func: str) -> int:
 def test_call_sites(kernel, func, sites):
   wp.init()
   assert _call_sites(kernel, func) == sites
+
+
+def _package_kernels() -> list:
+  """Every kernel of the package: the module-level ones, and each factory's for one key."""
+  kernels = []
+  for info in pkgutil.iter_modules(mjx_supportfield.__path__):
+    if info.name != "__main__":
+      module = importlib.import_module(f"mjx_supportfield.{info.name}")
+      kernels += [k for k in vars(module).values() if isinstance(k, wp.Kernel)]
+  pair_test_key = (0, 1, 1, 1, 1, 0, 0, False, False)
+  kernels += [
+    broadphase.sweep_kernel(pair_test_key, 0),
+    broadphase.listed_pairs_kernel(pair_test_key, True),
+    narrowphase.analytic_kernel(routing.ANALYTIC_PAIRS[:1]),
+    narrowphase.convex_kernel(False),
+    narrowphase.convex_kernel(True),
+  ]
+  return kernels
+
+
+def test_no_kernel_builds_an_adjoint():
+  """The kernels only run forward, and an adjoint would cost build time for nothing (the GJK
+  kernel's took NVRTC over 10 minutes). Modules turn it off once with set_module_options; a
+  factory's module="unique" kernel takes Warp's global options instead, so it must turn it off
+  itself."""
+  kernels = _package_kernels()
+  assert len(kernels) > 30
+  with_adjoint = [k.key for k in kernels if (k.module.options | k.options)["enable_backward"]]
+  assert not with_adjoint

@@ -1,10 +1,10 @@
-"""The real-model scenes of models/real/ (benchmarks/fidelity.py): they load and compile in MuJoCo,
-their scripted MuJoCo C rollouts do what the scene is for, and the plugin installs on them."""
+"""The real-model scenes of models/real/ (mjx_supportfield.real_scenes; benchmarks/fidelity.py judges
+the plugin on them): they load and compile in MuJoCo, their scripted MuJoCo C rollouts do what the
+scene is for, and the plugin installs on them."""
 
 import importlib.util
 import os
 import re
-import sys
 
 import mujoco
 import mujoco_warp as mjw
@@ -13,21 +13,18 @@ import pytest
 
 import mjx_supportfield as sf
 from conftest import MODELS
-from conftest import ROOT
-
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-import fidelity  # noqa: E402
+from mjx_supportfield import real_scenes
 
 REAL = os.path.join(MODELS, "real")
-SCENES = sorted(fidelity.SCENES)
+SCENES = sorted(real_scenes.SCENES)
 
 
 def _rollout_end(name: str) -> tuple[mujoco.MjModel, mujoco.MjData, dict]:
   """MuJoCo C's scripted rollout of a scene: its last state (forward-computed) and contact figures."""
-  scene = fidelity.SCENES[name]
-  mjm = fidelity.load(name)
+  scene = real_scenes.SCENES[name]
+  mjm = real_scenes.load(name)
   nstep = int(round(scene.seconds / mjm.opt.timestep))
-  ref = fidelity.rollout_mujoco(scene, mjm, fidelity.initial_data(mjm).qpos.copy(), nstep)
+  ref = real_scenes.rollout_mujoco(scene, mjm, real_scenes.initial_data(mjm).qpos.copy(), nstep)
   mjd = mujoco.MjData(mjm)
   mjd.qpos[:] = ref["qpos"][-1]
   mujoco.mj_forward(mjm, mjd)
@@ -44,13 +41,13 @@ def _terrain_script():
 
 def test_every_scene_file_is_in_the_suite():
   files = {f for f in os.listdir(REAL) if f.endswith(".xml") and f != "go1.xml"}  # go1.xml: the robot alone
-  assert files == {fidelity.SCENES[s].xml for s in SCENES}
+  assert files == {real_scenes.SCENES[s].xml for s in SCENES}
 
 
 @pytest.mark.parametrize("name", SCENES)
 def test_scene_compiles_with_named_collision_geoms(name):
-  mjm = fidelity.load(name)
-  mjd = fidelity.initial_data(mjm)
+  mjm = real_scenes.load(name)
+  mjd = real_scenes.initial_data(mjm)
   assert mjd.ncon > 0 or name in ("bin_drop", "polyhedra")  # the drops start in the air
   collides = (mjm.geom_contype != 0) | (mjm.geom_conaffinity != 0)
   unnamed = [g for g in np.flatnonzero(collides) if not mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g)]
@@ -64,8 +61,8 @@ def test_mujoco_rollout_does_the_task(name):
   assert np.all(np.isfinite(ref["qpos"]))
   assert not [w for w in mjd.warning if w.number], f"{name}: MuJoCo warnings"
   assert ref["ncon"].max() >= 10, f"{name}: too few contacts for a fidelity scene"
-  assert not fidelity.fallen_through(mjm, mjd, fidelity._static_geoms(mjm))
-  outcome = fidelity.SCENES[name].outcome(mjm, mjd, fidelity.initial_data(mjm))
+  assert not real_scenes.fallen_through(mjm, mjd, real_scenes.static_geoms(mjm))
+  outcome = real_scenes.SCENES[name].outcome(mjm, mjd, real_scenes.initial_data(mjm))
   if name == "gripper_grasp":
     assert outcome["can_lift_m"] > 0.12  # the grasp holds: carriage raised 15 cm
   elif name == "bin_drop":
@@ -73,7 +70,7 @@ def test_mujoco_rollout_does_the_task(name):
   elif name == "arm_sweep":
     assert outcome["objects_on_table"] == outcome["objects"]
     moved = [np.linalg.norm(ref["qpos"][-1][a:a + 2] - ref["qpos"][0][a:a + 2])
-             for a in (mjm.jnt_qposadr[mjm.body_jntadr[b]] for b in fidelity._free_bodies(mjm))]
+             for a in (mjm.jnt_qposadr[mjm.body_jntadr[b]] for b in real_scenes.free_bodies(mjm))]
     assert sum(d > 0.05 for d in moved) >= 4, "the sweep should push most objects"
   elif name == "quadruped_terrain":
     assert outcome["trunk_up_z"] > 0.9 and outcome["trunk_z_m"] > 0.2  # standing, not fallen over
@@ -82,12 +79,12 @@ def test_mujoco_rollout_does_the_task(name):
 
 
 def test_squeeze_deepens_contacts():
-  mjm = fidelity.load("bin_drop")
-  scene = fidelity.SCENES["bin_drop"]
-  ref = fidelity.rollout_mujoco(scene, mjm, fidelity.initial_data(mjm).qpos.copy(), 750)
+  mjm = real_scenes.load("bin_drop")
+  scene = real_scenes.SCENES["bin_drop"]
+  ref = real_scenes.rollout_mujoco(scene, mjm, real_scenes.initial_data(mjm).qpos.copy(), 750)
   mjd = mujoco.MjData(mjm)
-  before, _ = fidelity.deepest_penetration(mjm, mjd, ref["qpos"][-1])
-  after, _ = fidelity.deepest_penetration(mjm, mjd, fidelity.squeeze(mjm, ref["qpos"][-1]))
+  before, _ = real_scenes.deepest_penetration(mjm, mjd, ref["qpos"][-1])
+  after, _ = real_scenes.deepest_penetration(mjm, mjd, real_scenes.squeeze(mjm, ref["qpos"][-1]))
   assert after > before + 0.5e-3
 
 
@@ -110,7 +107,7 @@ def test_readme_lists_every_asset_with_a_licence():
 
 @pytest.mark.parametrize("name", SCENES)
 def test_plugin_installs(name):
-  mjm = fidelity.load(name)
+  mjm = real_scenes.load(name)
   m = mjw.put_model(mjm)
   collider = sf.install(mjm, m)
   assert sf.get_collider(m) is collider

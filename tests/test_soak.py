@@ -1,6 +1,8 @@
-"""benchmarks/soak.py's checkpoints: a resumed soak continues the state exactly, a mismatched one is refused."""
+"""The soak's checkpoints (mjx_supportfield.checkpoint, written and read by benchmarks/checkpoint.py): a
+resumed soak continues the state exactly, a mismatched one is refused."""
 
 import os
+import subprocess
 import sys
 
 import mujoco
@@ -9,21 +11,29 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-
-import soak  # noqa: E402
-
-from mjx_supportfield import Options  # noqa: E402
-from mjx_supportfield.install import install  # noqa: E402
+from mjx_supportfield import Options
+from mjx_supportfield import checkpoint
+from mjx_supportfield.install import install
 
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "pile_32_128.xml")
 NSTEP = 10
+NCONMAX = 256  # contacts per world: room for the pile's at rest
+
+
+def _moving_data(mjm, m, nworld):
+  """Data at the scene's initial state with small random velocities, as a soak starts."""
+  mjd = mujoco.MjData(mjm)
+  mujoco.mj_forward(mjm, mjd)
+  d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=NCONMAX, njmax=6 * NCONMAX)
+  rng = np.random.default_rng(0)
+  d.qvel.assign((0.05 * rng.uniform(-1, 1, size=(nworld, mjm.nv))).astype(np.float32))
+  mjw.forward(m, d)
+  return d
 
 
 def _meta(d, ref):
-  return {"format": soak.FORMAT, "scene": os.path.basename(SCENE), "scene_path": SCENE,
-          "scene_sha256": soak.scene_sha256(SCENE), "nworld": d.nworld, "ref": ref, "history": soak.new_history(),
-          "versions": {}}
+  return {"format": checkpoint.FORMAT, "scene": os.path.basename(SCENE), "scene_path": SCENE,
+          "scene_sha256": checkpoint.scene_sha256(SCENE), "nworld": d.nworld, "ref": ref, "versions": {}}
 
 
 @pytest.mark.slow
@@ -34,17 +44,17 @@ def test_resume_continues_bitwise(tmp_path):
   mjm.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
   m = mjw.put_model(mjm)
   install(mjm, m, Options(warm_start=False))
-  d, ref = soak.fresh_start(mjm, m, 2, None)
+  d, ref = _moving_data(mjm, m, 2), {"nconmax": NCONMAX}
   for _ in range(NSTEP):
     mjw.step(m, d)
   path = str(tmp_path / "ck.npz")
-  saved = soak.save_checkpoint(path, d, _meta(d, ref), 15.0)
+  saved = checkpoint.save_checkpoint(path, d, _meta(d, ref), 15.0)
   assert saved["warmstart_saved"]
   for _ in range(NSTEP):
     mjw.step(m, d)
-  meta, state = soak.load_checkpoint(path)
-  assert meta["ref"] == ref and set(state) == set(soak.STATE) | {soak.WARMSTART}
-  d2 = soak.resume_start(mjm, m, meta, state)
+  meta, state = checkpoint.load_checkpoint(path)
+  assert meta["ref"] == ref and set(state) == set(checkpoint.STATE) | {checkpoint.WARMSTART}
+  d2 = checkpoint.resume_start(mjm, m, meta, state)
   for _ in range(NSTEP):
     mjw.step(m, d2)
   np.testing.assert_array_equal(d2.qpos.numpy(), d.qpos.numpy())
@@ -52,18 +62,24 @@ def test_resume_continues_bitwise(tmp_path):
 
 
 @pytest.mark.parametrize("nworld, nconmax, needle", [(8, None, "--nworld 8"), (None, 5, "--nconmax 5")])
-def test_mismatch_refused(capsys, nworld, nconmax, needle):
-  meta = {"scene": "pile_32_128.xml", "scene_sha256": soak.scene_sha256(SCENE), "nworld": 2,
+def test_mismatch_refused(nworld, nconmax, needle):
+  meta = {"scene": "pile_32_128.xml", "scene_sha256": checkpoint.scene_sha256(SCENE), "nworld": 2,
           "ref": {"nconmax": 100}, "versions": {}}
-  with pytest.raises(SystemExit) as e:
-    soak.check_resume(meta, "ck.npz", SCENE, meta["scene_sha256"], nworld, nconmax)
-  assert e.value.code == 2 and needle in capsys.readouterr().err
+  with pytest.raises(checkpoint.CheckpointError, match=needle):
+    checkpoint.check_resume(meta, "ck.npz", SCENE, meta["scene_sha256"], nworld, nconmax)
 
 
-def test_other_scene_refused(capsys):
-  meta = {"scene": "pile_32_128.xml", "scene_sha256": soak.scene_sha256(SCENE), "nworld": 2,
+def test_other_scene_refused():
+  meta = {"scene": "pile_32_128.xml", "scene_sha256": checkpoint.scene_sha256(SCENE), "nworld": 2,
           "ref": {"nconmax": 100}, "versions": {}}
   other = os.path.join(ROOT, "benchmarks", "scenes", "primitives_32.xml")
-  with pytest.raises(SystemExit) as e:
-    soak.check_resume(meta, "ck.npz", other, soak.scene_sha256(other), 2, None)
-  assert e.value.code == 2 and "sha256" in capsys.readouterr().err
+  with pytest.raises(checkpoint.CheckpointError, match="sha256"):
+    checkpoint.check_resume(meta, "ck.npz", other, checkpoint.scene_sha256(other), 2, None)
+
+
+def test_script_exits_with_the_refusal(tmp_path):
+  """benchmarks/soak.py turns a refused checkpoint into its message on stderr and exit status 2."""
+  missing = str(tmp_path / "none.npz")
+  run = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "soak.py"), "--resume", missing],
+                       capture_output=True, text=True, cwd=ROOT)
+  assert run.returncode == 2 and f"soak: no checkpoint at {missing}" in run.stderr

@@ -2,8 +2,8 @@
 
 Scenes: models/resting.xml (a box, a cylinder on its end and the convex hull convex1 on a plane,
 plus a mesh cube on a mesh cube, the pair that goes through MPR and multi-contact) and
-models/box_stack.xml (five stacked cubes). The measuring code is benchmarks/stability.py's, which
-prints the same figures for the plugin, stock MuJoCo Warp and MuJoCo C.
+models/box_stack.xml (five stacked cubes). The measuring code is mjx_supportfield.stability's, with
+which benchmarks/stability.py prints the same figures for the plugin, stock MuJoCo Warp and MuJoCo C.
 
 Drift is the largest distance of a body from where it was at step SETTLE (200; the scenes
 start with 1 mm overlaps, pushed out within the first ~100 steps) until step 2000. Contact
@@ -11,16 +11,10 @@ motion is, for every contact, the distance to the nearest contact of the same ge
 step earlier, over the same window. Failure messages quote MuJoCo C's figure on the same scene.
 """
 
-import os
-import sys
-
 import mujoco
 import pytest
 
-from conftest import ROOT
-
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-import stability  # noqa: E402
+from mjx_supportfield import stability
 
 pytestmark = pytest.mark.slow  # whole trajectories
 

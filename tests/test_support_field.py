@@ -251,3 +251,28 @@ def test_proven_quads_are_exact(hulls, directions):
   # ... and on the dense round hull, the extras lists cover the quads whose corners miss a vertex
   assert listed_fraction["ball4096"] > 0.05, listed_fraction
   assert proven_fraction["ball4096"] > 0.999, proven_fraction
+
+
+def test_hull_graph_layout_checked_for_every_reader():
+  """The hull graph has one parser: a graph whose neighbour lists do not end where MuJoCo's
+  layout says makes every reader (neighbours, face planes, SDF triangles, the yardstick's
+  faces) raise instead of reading faces from the wrong entries."""
+  from mjx_supportfield import exact
+  from mjx_supportfield import sdf
+  from mjx_supportfield.hull_graph import hull_graph
+
+  cube = " ".join(f"{x} {y} {z}" for x in (-1, 1) for y in (-1, 1) for z in (-1, 1))
+  mjm = mujoco.MjModel.from_xml_string(
+    f'<mujoco><asset><mesh name="c" vertex="{cube}"/></asset><worldbody><geom type="mesh" mesh="c"/>'
+    "</worldbody></mujoco>"
+  )
+  graph = hull_graph(mjm, 0)
+  assert len(graph.vert) == 8 and graph.faces.shape == (12, 3) and graph.nbr_num.sum() == len(graph.nbr) == 36
+  adr = mjm.mesh_graphadr[0]
+  nvert = mjm.mesh_graph[adr]
+  last_end = adr + 2 + 2 * nvert + len(graph.nbr) + nvert - 1  # the -1 that ends the last list
+  mjm.mesh_graph[last_end] = 0
+  readers = (support_field.mesh_hull, support_field.mesh_hull_planes, sdf.hull_triangles, exact.hull_faces)
+  for reader in readers:
+    with pytest.raises(ValueError, match="convex-hull graph"):
+      reader(mjm, 0)

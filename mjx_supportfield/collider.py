@@ -88,13 +88,14 @@ class Collider:
       self.has_stock_pairs = bool(stock.any()) or bool((pairids[:, 1] >= 0).any())
 
       present = routing.pair_types_present(mjm, pairs)
-      self.analytic_types, self.mpr_types, queue_table = routing.pair_queue_table(present)
+      self.analytic_types, self.mpr_types, queue_table = routing.pair_queue_table(present, options.narrowphase == "gjk")
       self.pair_queue_type = wp.array(queue_table, dtype=int)
       core = (GeomType.SPHERE, GeomType.CAPSULE)
       self.has_core_pairs = any(t1 in core or t2 in core for t1, t2 in self.mpr_types)
       self.has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
-      nmpr = int((queue_table[t1 * routing.NGEOMTYPE + t2] == routing.QUEUE_MPR).sum())
+      queues = queue_table[t1 * routing.NGEOMTYPE + t2]
+      nmpr = int(((queues == routing.QUEUE_GJK) | (queues == routing.QUEUE_CANDIDATE)).sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
       nhfield = int(((t1 == GeomType.HFIELD) & np.isin(t2, [int(t) for t in CONVEX_TYPES])).sum())
       self.hfield_pairs_per_world = min(nhfield, self.max_pairs)  # bounds the heightfield kernels' pairs

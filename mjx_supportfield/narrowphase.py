@@ -599,7 +599,6 @@ def make_buffers(c, nworld: int, capacity: int) -> Buffers:
   )
   q = b.queues
   q.pair_queue_type, q.geom_nonconvex = c.pair_queue_type, c.geom_nonconvex
-  q.gjk_all = int(c.options.narrowphase == "gjk")
   q.count, q.pair = b.queue_count, b.queue_pair
   return b
 

@@ -28,24 +28,16 @@ QUEUE_CANDIDATE = wp.constant(3)  # MPR pairs not yet tested for being apart (si
 NQUEUE = 4
 
 
-@wp.func
-def has_core(type1: int, type2: int) -> bool:
-  """Whether a pair has a sphere or capsule (a point or segment core grown by a radius)."""
-  return (type1 == GeomType.SPHERE or type1 == GeomType.CAPSULE or type2 == GeomType.SPHERE
-          or type2 == GeomType.CAPSULE)
-
-
 @wp.struct
 class PairQueues:
   """Where the broad phase deals out the pairs it lists: one queue per narrow-phase kernel.
 
-  ``pair_queue_type`` maps a pair's geom types (type1 * NGEOMTYPE + type2) to QUEUE_ANALYTIC or
-  QUEUE_MPR, else -1 (the heightfield and non-convex kernels, and stock MuJoCo Warp, walk the
-  whole list)."""
+  ``pair_queue_type`` maps a pair's geom types (type1 * NGEOMTYPE + type2) to QUEUE_ANALYTIC,
+  QUEUE_GJK or QUEUE_CANDIDATE (``pair_queue_table``, at install), else -1 (the heightfield and
+  non-convex kernels, and stock MuJoCo Warp, walk the whole list)."""
 
   pair_queue_type: wp.array(dtype=int)
   geom_nonconvex: wp.array(dtype=int)
-  gjk_all: int  # narrowphase="gjk": every convex non-analytic pair to GJK/EPA
   count: wp.array(dtype=int)  # (NQUEUE,) pairs in each queue
   pair: wp.array2d(dtype=int)  # (NQUEUE, capacity): indices into the pair list
 
@@ -56,23 +48,17 @@ def queue_pair(geom_type: wp.array(dtype=int), geoms: wp.vec2i, cid: int, queues
   run only pairs of their own kind (in one pair list, a pile's mesh-plane pairs sat idle in the
   MPR kernel's warps, between the mesh-mesh pairs).
 
-  A convex pair with a sphere or capsule goes to GJK (a point or segment core grown by a
-  radius: GJK gives the exact nearest points, where MPR's normal drifts for a small sphere sunk
-  deep), as do all with ``gjk_all``; one with a non-convex mesh goes to nonconvex.py. The other
-  MPR pairs wait in QUEUE_CANDIDATE for sift_mpr_pairs. Cheap on purpose: the broad-phase
-  kernels that call it run a thread per (world, pair), and support queries here would make
-  every one of those threads heavy.
+  The queue of each type pair is decided at install (``pair_queue_table``); a convex pair with a
+  non-convex mesh goes to nonconvex.py instead. Cheap on purpose: the broad-phase kernels that
+  call it run a thread per (world, pair), and support queries here would make every one of
+  those threads heavy.
   """
   type1 = geom_type[geoms[0]]
   type2 = geom_type[geoms[1]]
   queue = queues.pair_queue_type[type1 * wp.static(NGEOMTYPE) + type2]
-  if queue == QUEUE_MPR:
+  if queue == QUEUE_GJK or queue == QUEUE_CANDIDATE:
     if queues.geom_nonconvex[geoms[0]] or queues.geom_nonconvex[geoms[1]]:
       return
-    if queues.gjk_all != 0 or has_core(type1, type2):
-      queue = QUEUE_GJK
-    else:
-      queue = QUEUE_CANDIDATE
   if queue >= 0:
     slot = wp.atomic_add(queues.count, queue, 1)
     queues.pair[queue, slot] = cid
@@ -88,17 +74,24 @@ def pair_types_present(mjm, pairs) -> set:
   return types
 
 
-def pair_queue_table(present) -> tuple:
+def pair_queue_table(present, gjk_all: bool) -> tuple:
   """The analytic and the MPR geom-type pairs among ``present`` (ordered pairs the model can
-  produce), and the table that maps a pair's types to its queue (see PairQueues)."""
+  produce), and the table that maps a pair's types to its queue (see PairQueues).
+
+  An MPR pair with a sphere or capsule goes to GJK (a point or segment core grown by a radius:
+  GJK gives the exact nearest points, where MPR's normal drifts for a small sphere sunk deep), as
+  do all with ``gjk_all`` (narrowphase="gjk"); the others wait in QUEUE_CANDIDATE for
+  sift_mpr_pairs, which passes those not proven apart on to QUEUE_MPR."""
   analytic_types = tuple(t for t in ANALYTIC_PAIRS if t in present)
   queue_table = np.full(NGEOMTYPE**2, -1, dtype=np.int32)
   for t1, t2 in analytic_types:
     queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_ANALYTIC
   mpr_types = []
+  core = (GeomType.SPHERE, GeomType.CAPSULE)
   for t1, t2 in present:
     if (t1, t2) not in ANALYTIC_PAIRS and t1 in CONVEX_TYPES and t2 in CONVEX_TYPES:
-      queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_MPR
+      gjk = gjk_all or t1 in core or t2 in core
+      queue_table[int(t1) * NGEOMTYPE + int(t2)] = QUEUE_GJK if gjk else QUEUE_CANDIDATE
       mpr_types.append((t1, t2))
   return analytic_types, mpr_types, queue_table
 

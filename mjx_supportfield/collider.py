@@ -191,6 +191,7 @@ class Collider:
 
   def _collision(self, m, d, awake_prev: Optional[wp.array]):
     if self.stock_path:
+      self._check_data(d)  # shapes and devices only: cheap enough for every call
       STOCK_COLLISION(m, d, awake_prev)
       return
     if d.naconmax == 0 or m.opt.disableflags & (DisableBit.CONSTRAINT | DisableBit.CONTACT):

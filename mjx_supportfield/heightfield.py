@@ -15,7 +15,13 @@ give contact candidates in three passes:
   base, as MuJoCo collides) against the geom, kept only when the prism's witness point lies
   on the top triangle and no plane-pass candidate with that normal is as deep. A prism's
   side walls lie inside the terrain: an exact penetration solver would push geoms out
-  sideways through them, so those answers are dropped;
+  sideways through them, so those answers are dropped. A box or a mesh runs MuJoCo Warp's GJK/EPA
+  (collision_gjk.ccd) on each prism instead, built as MuJoCo C builds it, and keeps each prism's
+  answer unless it is a side wall's or a face lying flat on the triangle (whose corners the plane
+  pass has): such a face on rough terrain overlaps many prisms, and MuJoCo C's contact of each
+  lies where its EPA ends, spread over the face, where the deepest terrain points alone leave
+  no contact. Those threads hold EPA memory, so the MPR and contact kernels then run at most
+  CCD_THREADS threads;
 - the point pass (terrain features in the geom): peaks (grid vertices above the mean of
   their neighbours), and the point of each ridge edge (a convex fold of the surface) nearest
   the geom's centre and its ends, that lie inside the geom; MPR of that point against the
@@ -51,15 +57,21 @@ import dataclasses
 import mujoco
 import numpy as np
 import warp as wp
+from mujoco_warp._src.collision_core import Geom
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
+from mujoco_warp._src.collision_core import geom_collision_pair
+from mujoco_warp._src.collision_gjk import ccd
+from mujoco_warp._src.types import MJ_MAX_EPAFACES
+from mujoco_warp._src.types import MJ_MAX_EPAHORIZON
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import vec5
 
+from mjx_supportfield.candidates import NCANDIDATE
 from mjx_supportfield.candidates import Candidates
 from mjx_supportfield.candidates import add_candidate
-from mjx_supportfield.candidates import empty
+from mjx_supportfield.candidates import empty_with_room
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.hfield_cells import _axis
@@ -74,6 +86,7 @@ from mjx_supportfield.hfield_cells import _outside_walls
 from mjx_supportfield.hfield_cells import _plane_depth
 from mjx_supportfield.hfield_cells import _point_shape
 from mjx_supportfield.hfield_cells import _prism_answer_kept
+from mjx_supportfield.hfield_cells import _prism_geom
 from mjx_supportfield.hfield_cells import _prism_shape
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import mpr_refined
@@ -103,6 +116,38 @@ vec_kept = wp.types.vector(length=KEPT_CELLS, dtype=int)
 # warp's lanes take the same branches of the support functions
 NKIND = 2 * NGEOMTYPE
 COUNT_PAIRS, COUNT_JOBS, COUNT_UNQUEUED, COUNT_KIND = 0, 1, 2, 3  # hfield_count: then NKIND counts
+# threads of the heightfield kernels that may run GJK/EPA on prisms, each with its own EPA memory
+CCD_THREADS = 8192
+
+
+@wp.struct
+class PrismCcd:
+  """What MuJoCo Warp's GJK/EPA (collision_gjk.ccd) needs to collide a terrain prism with a box
+  or a mesh as MuJoCo C does: the meshes, the solver's options, and EPA memory, one row a thread."""
+
+  mesh_vertadr: wp.array(dtype=int)
+  mesh_vertnum: wp.array(dtype=int)
+  mesh_graphadr: wp.array(dtype=int)
+  mesh_vert: wp.array(dtype=wp.vec3)
+  mesh_graph: wp.array(dtype=int)
+  mesh_polynum: wp.array(dtype=int)
+  mesh_polyadr: wp.array(dtype=int)
+  mesh_polynormal: wp.array(dtype=wp.vec3)
+  mesh_polyvertadr: wp.array(dtype=int)
+  mesh_polyvertnum: wp.array(dtype=int)
+  mesh_polyvert: wp.array(dtype=int)
+  mesh_polymapadr: wp.array(dtype=int)
+  mesh_polymapnum: wp.array(dtype=int)
+  mesh_polymap: wp.array(dtype=int)
+  tolerance: wp.array(dtype=float)  # per world: m.opt.ccd_tolerance
+  iterations: int
+  epa_iterations: int
+  vert: wp.array2d(dtype=wp.vec3)
+  vert_index: wp.array2d(dtype=int)
+  face: wp.array2d(dtype=int)
+  face_pr: wp.array2d(dtype=wp.vec3)
+  face_norm2: wp.array2d(dtype=float)
+  horizon: wp.array2d(dtype=int)
 
 
 @wp.struct
@@ -281,11 +326,77 @@ def _job_mpr(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
 
 
 @wp.func
+def _uses_ccd(b: Shape, code: int) -> bool:
+  """Whether job ``code`` is a prism against a box or a mesh: those run MuJoCo Warp's GJK/EPA, as
+  MuJoCo C collides each prism. A face of such a geom lying on rough terrain overlaps many prisms,
+  and C's one contact per prism lies where its EPA ends, spread over the face: MPR's answer (the
+  deepest terrain point, often one grid vertex shared by the prisms around it) leaves those
+  places without a contact."""
+  return code % NJOB < 2 and (b.gtype == GeomType.BOX or b.gtype == GeomType.MESH)
+
+
+@wp.func
+def _ccd_geom(ccd_in: PrismCcd, geom_type: wp.array(dtype=int), geom_dataid: wp.array2d(dtype=int),
+              geom_size: wp.array2d(dtype=wp.vec3), geom_xpos_in: wp.array2d(dtype=wp.vec3),
+              geom_xmat_in: wp.array2d(dtype=wp.mat33), geoms: wp.vec2i, worldid: int) -> Geom:
+  """Geom B of the pair as MuJoCo Warp's GJK/EPA takes it, posed in the terrain's frame."""
+  _, g = geom_collision_pair(
+    geom_type, geom_dataid, geom_size, ccd_in.mesh_vertadr, ccd_in.mesh_vertnum, ccd_in.mesh_graphadr,
+    ccd_in.mesh_vert, ccd_in.mesh_graph, ccd_in.mesh_polynum, ccd_in.mesh_polyadr, ccd_in.mesh_polynormal,
+    ccd_in.mesh_polyvertadr, ccd_in.mesh_polyvertnum, ccd_in.mesh_polyvert, ccd_in.mesh_polymapadr,
+    ccd_in.mesh_polymapnum, ccd_in.mesh_polymap, geom_xpos_in, geom_xmat_in, geoms, worldid,
+  )
+  rt = wp.transpose(geom_xmat_in[worldid, geoms[0]])
+  g.pos = rt @ (g.pos - geom_xpos_in[worldid, geoms[0]])
+  g.rot = rt @ g.rot
+  return g
+
+
+@wp.func
+def _job_ccd(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, bgeom: Geom,
+             btype: int, tp: TerrainPair, code: int, ccd_in: PrismCcd, row: int, worldid: int,
+             overflow_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
+  """Prism job ``code``'s answer by MuJoCo Warp's GJK/EPA on EPA memory ``row``, the prism built
+  as collision_convex's heightfield kernel builds it (MuJoCo's vertex order, GJK started from its
+  centre): the midpoint of the witness points and the depth with the band (0 when apart), and the
+  normal from the terrain to B."""
+  dx, dy = _cell_size(size, nrow, ncol)
+  r, c = _window_cell(tp, code // NJOB)
+  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+  first = code % NJOB == 0  # MuJoCo's first triangle (p10, p00, p11), then (p00, p11, p01)
+  prism = _prism_geom(wp.where(first, p10, p00), wp.where(first, p00, p11), wp.where(first, p11, p01), -size[3])
+  centre = wp.vec3(0.0)
+  for i in range(6):
+    centre += prism.polyvert[i]
+  dist, ncontact, w1, w2, _ = ccd(
+    ccd_in.tolerance[worldid % ccd_in.tolerance.shape[0]], tp.band, ccd_in.iterations, ccd_in.epa_iterations, prism,
+    bgeom, int(GeomType.HFIELD), btype, centre / 6.0, bgeom.pos, ccd_in.vert[row], ccd_in.vert_index[row],
+    ccd_in.face[row], ccd_in.face_pr[row], ccd_in.face_norm2[row], ccd_in.horizon[row], False, worldid, overflow_out,
+  )
+  direction = wp.where(dist < 0.0, w1 - w2, w2 - w1)  # w1 on the prism, w2 on B
+  if ncontact == 0 or dist >= tp.band or wp.length(direction) == 0.0:
+    return wp.vec4(0.0), wp.vec3(0.0)
+  pos = 0.5 * (w1 + w2)
+  return wp.vec4(pos[0], pos[1], pos[2], tp.band - dist), wp.normalize(direction)
+
+
+@wp.func
+def _job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
+                ms: MeshSupport, mode: int, tp: TerrainPair, code: int, tolerance: float, iterations: int,
+                refine: int, bgeom: Geom, ccd_in: PrismCcd, row: int, worldid: int,
+                overflow_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
+  """MPR job ``code``'s answer (_job_mpr), or GJK/EPA's for a prism against a box or a mesh."""
+  if _uses_ccd(b, code):
+    return _job_ccd(hfield_data, adr, nrow, ncol, size, bgeom, b.gtype, tp, code, ccd_in, row, worldid, overflow_out)
+  return _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, mode, tp, code, tolerance, iterations, refine)
+
+
+@wp.func
 def _plane_pass(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
                 ms: MeshSupport, mode: int, tp: TerrainPair, spacing: float) -> Candidates:
   """The face contacts: B's corners against the triangle under each, then each cell's
   triangles against B's deepest points (and a capsule's ends)."""
-  cands = empty()
+  cands = empty_with_room(NCANDIDATE)  # a face on rough terrain rests on many prisms (_uses_ccd)
   band = tp.band
   r0 = tp.window[0]
   r1 = tp.window[1]
@@ -326,8 +437,8 @@ def _plane_pass(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: i
 
 @wp.func
 def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4,
-                    tp: TerrainPair, cands: Candidates, code: int, answer: wp.vec4, normal: wp.vec3, spacing: float,
-                    tol: float) -> Candidates:
+                    tp: TerrainPair, b: Shape, cands: Candidates, code: int, answer: wp.vec4, normal: wp.vec3,
+                    spacing: float, tol: float) -> Candidates:
   """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to the
   candidates, unless it is a prism's answer through a side wall or one the face contacts
   already hold (_prism_answer_kept), or a point's with a normal into the terrain or between
@@ -344,7 +455,7 @@ def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, nco
   res.pos = wp.vec3(answer[0], answer[1], answer[2])
   res.normal = normal
   if job < 2:
-    if not _prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol):
+    if not _prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol, _uses_ccd(b, code)):
       return cands
   elif wp.dot(normal, na + nb) <= 0.0:
     return cands  # B's surface normal must point away from the terrain
@@ -555,13 +666,15 @@ def hfield_mpr(
   hfield_pair_in: wp.array(dtype=TerrainPair),
   hfield_job_in: wp.array(dtype=wp.vec2i),
   order_in: wp.array(dtype=int),
+  ccd_in: PrismCcd,
   nthread: int,
   # Out:
+  overflow_out: wp.array(dtype=int),
   answer_out: wp.array(dtype=wp.vec4),
   normal_out: wp.array(dtype=wp.vec3),
 ):
-  """The queued terrain MPRs, one thread a job in hfield_order's order: the contact point and
-  depth (0: none) and the normal, for hfield_contacts."""
+  """The queued terrain MPRs (GJK/EPA for a box's or a mesh's prisms), one thread a job in
+  hfield_order's order: the contact point and depth (0: none) and the normal, for hfield_contacts."""
   tid = wp.tid()
   for i in range(tid, wp.min(hfield_count_in[COUNT_JOBS], hfield_job_in.shape[0]), nthread):
     j = order_in[i]
@@ -570,8 +683,12 @@ def hfield_mpr(
     worldid = pair_worldid_in[tp.cid]
     _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, pair_in[tp.cid],
                              worldid)
-    answer, normal = _job_mpr(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
-                              support_mode, tp, job[1], tolerance, iterations, refine)
+    bgeom = Geom()
+    if _uses_ccd(b, job[1]):
+      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, pair_in[tp.cid], worldid)
+    answer, normal = _job_answer(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b,
+                                 ms, support_mode, tp, job[1], tolerance, iterations, refine, bgeom, ccd_in, tid,
+                                 worldid, overflow_out)
     answer_out[j] = answer
     normal_out[j] = normal
 
@@ -626,6 +743,7 @@ def hfield_contacts(
   hfield_job_in: wp.array(dtype=wp.vec2i),
   answer_in: wp.array(dtype=wp.vec4),
   normal_in: wp.array(dtype=wp.vec3),
+  ccd_in: PrismCcd,
   nthread: int,
   quota: ContactQuota,
   # Data out:
@@ -669,13 +787,16 @@ def hfield_contacts(
     spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
     cands = _plane_pass(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, spacing)
     for j in range(tp.job_start, tp.job_start + tp.job_count):
-      cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, cands, hfield_job_in[j][1], answer_in[j],
+      cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, hfield_job_in[j][1], answer_in[j],
                               normal_in[j], spacing, tolerance)
     # the jobs the queue had no room for, in order after the queued ones
     code = int(0)
     if tp.job_count > 0:
       code = hfield_job_in[tp.job_start + tp.job_count - 1][1] + 1
     left = tp.job_total - tp.job_count
+    bgeom = Geom()
+    if left > 0 and _uses_ccd(b, 0):
+      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
     ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
     while left > 0 and code < ncell * NJOB:
       cell = code // NJOB
@@ -684,10 +805,10 @@ def hfield_contacts(
       job = int(0)
       while mask != 0:
         if (mask & 1) == 1:
-          answer, normal = _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
-                                    tolerance, iterations, refine)
-          cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, cands, cell * NJOB + job, answer, normal,
-                                  spacing, tolerance)
+          answer, normal = _job_answer(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
+                                       tolerance, iterations, refine, bgeom, ccd_in, tid, worldid, overflow_out)
+          cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, cell * NJOB + job, answer,
+                                  normal, spacing, tolerance)
           left -= 1
         mask = mask >> 1
         job += 1
@@ -733,13 +854,23 @@ class Buffers:
   order: wp.array  # (MPRs) the queue's jobs grouped by kind, the order hfield_mpr runs them in
   answer: wp.array  # (MPRs) each MPR's point and depth
   normal: wp.array  # (MPRs) and normal
+  ccd_rows: int  # rows of EPA memory: with GJK/EPA (PrismCcd), the MPR and contact kernels' threads
+  epa: tuple  # (vert, vert_index, face, face_pr, face_norm2, horizon), ccd_rows rows each
 
 
 def make_buffers(c, nworld: int) -> Buffers:
   """The heightfield stage's buffers for ``nworld`` worlds (``c``: the Collider)."""
   npair = max(1, nworld * c.hfield_pairs_per_world)
   nmpr = npair * c.options.hfield_mprs_per_pair if c.hfield_pairs_per_world else 1
+  rows = min(max(nmpr, npair), CCD_THREADS) if c.has_hfield_pairs and c.hfield_ccd else 1
+  # sized as MuJoCo Warp's collision_convex sizes its EPA memory
+  nvert = 10 + 2 * c.hfield_ccd_iterations
+  nface = 6 + MJ_MAX_EPAFACES * c.hfield_ccd_iterations
   return Buffers(
+    ccd_rows=rows,
+    epa=(wp.empty((rows, nvert), dtype=wp.vec3), wp.empty((rows, nvert), dtype=int), wp.empty((rows, nface), dtype=int),
+         wp.empty((rows, nface), dtype=wp.vec3), wp.empty((rows, nface), dtype=float),
+         wp.empty((rows, MJ_MAX_EPAHORIZON), dtype=int)),
     count=wp.zeros(COUNT_KIND + NKIND, dtype=int),
     kind_next=wp.zeros(NKIND, dtype=int),
     order=wp.zeros(nmpr, dtype=int),
@@ -776,18 +907,27 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
     inputs=[m.geom_type, pairs.pair, b.count, b.pair, b.job, nthread_pair],
     outputs=[b.kind_next, b.order],
   )
-  nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
+  ccd_in = PrismCcd()
+  for field in ("vertadr", "vertnum", "graphadr", "vert", "graph", "polynum", "polyadr", "polynormal", "polyvertadr",
+                "polyvertnum", "polyvert", "polymapadr", "polymapnum", "polymap"):
+    setattr(ccd_in, "mesh_" + field, getattr(m, "mesh_" + field))
+  ccd_in.tolerance = m.opt.ccd_tolerance
+  ccd_in.iterations = c.hfield_ccd_iterations
+  ccd_in.epa_iterations = c.hfield_ccd_iterations
+  ccd_in.vert, ccd_in.vert_index, ccd_in.face, ccd_in.face_pr, ccd_in.face_norm2, ccd_in.horizon = b.epa
+  nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS, b.ccd_rows if c.hfield_ccd else GRID_THREADS))
+  nthread_contacts = max(1, min(nthread_pair, b.ccd_rows if c.hfield_ccd else GRID_THREADS))
   wp.launch(
     hfield_mpr,
     dim=nthread_mpr,
     inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
     + [d.geom_xpos, d.geom_xmat, c.mesh_support, mode, opt.mpr_tolerance, opt.mpr_iterations,
-       opt.mpr_refine, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.order, nthread_mpr],
-    outputs=[b.answer, b.normal],
+       opt.mpr_refine, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.order, ccd_in, nthread_mpr],
+    outputs=[d.overflow, b.answer, b.normal],
   )
   wp.launch(
     hfield_contacts,
-    dim=nthread_pair,
+    dim=nthread_contacts,
     inputs=[
       m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
       m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
@@ -795,8 +935,8 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
       m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, mode,
       opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
       opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid,
-      pairs.pair_worldid, b.count, b.pair, b.job, b.answer, b.normal,
-      nthread_pair, quota,
+      pairs.pair_worldid, b.count, b.pair, b.job, b.answer, b.normal, ccd_in,
+      nthread_contacts, quota,
     ],
     outputs=[d.overflow] + contact_outputs(d),
   )

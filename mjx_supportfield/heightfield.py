@@ -20,8 +20,7 @@ give contact candidates in three passes:
   answer unless it is a side wall's or a face lying flat on the triangle (whose corners the plane
   pass has): such a face on rough terrain overlaps many prisms, and MuJoCo C's contact of each
   lies where its EPA ends, spread over the face, where the deepest terrain points alone leave
-  no contact. Those threads hold EPA memory, so the MPR and contact kernels then run at most
-  CCD_THREADS threads;
+  no contact;
 - the point pass (terrain features in the geom): peaks (grid vertices above the mean of
   their neighbours), and the point of each ridge edge (a convex fold of the surface) nearest
   the geom's centre and its ends, that lie inside the geom; MPR of that point against the
@@ -30,13 +29,16 @@ give contact candidates in three passes:
   ellipsoid, cylinder) also gets the point of each valley edge (a concave fold) nearest its
   centre, kept where its normal leans away from one of the edge's triangles: lying over one
   triangle beside the fold, it touches the triangle across the fold only at that edge.
-Three kernels: hfield_jobs finds each pair's cells and its prism and point MPRs that pass
+Four kernels: hfield_jobs finds each pair's cells and its prism and point MPRs that pass
 cheap tests (B above the triangle's plane, outside a prism's side wall, a point outside B by
 one support query) and queues them; hfield_mpr runs the queued MPRs, one thread each, so that a
 warp's lanes all run MPRs side by side (one thread a pair ran its ten or so one after another,
-beside lanes that had none); hfield_contacts, one thread a pair, adds the plane pass and the
-MPR answers in job order. MPRs that find the queue full (``Options.hfield_mprs_per_pair``) run
-in hfield_contacts instead: the same contacts, slower.
+beside lanes that had none), and hfield_ccd the queued GJK/EPA prisms of boxes and meshes on
+CCD_THREADS threads, each with a row of EPA memory; hfield_contacts, one thread a pair, adds the
+plane pass and the MPR answers in job order. MPRs that find the queue full
+(``Options.hfield_mprs_per_pair``) run in hfield_contacts instead: the same contacts, slower (its
+threads take rows of EPA memory left over by hfield_ccd; a prism that finds none left runs MPR,
+counted in the heightfield count buffer's COUNT_CCD_AS_MPR).
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
 points farthest from those already chosen are written, up to ``max_contacts``, and after them
@@ -116,7 +118,10 @@ vec_kept = wp.types.vector(length=KEPT_CELLS, dtype=int)
 # warp's lanes take the same branches of the support functions
 NKIND = 2 * NGEOMTYPE
 COUNT_PAIRS, COUNT_JOBS, COUNT_UNQUEUED, COUNT_KIND = 0, 1, 2, 3  # hfield_count: then NKIND counts
-# threads of the heightfield kernels that may run GJK/EPA on prisms, each with its own EPA memory
+COUNT_EPA_ROWS = COUNT_KIND + NKIND  # rows of EPA memory taken by hfield_contacts' threads
+COUNT_CCD_AS_MPR = COUNT_EPA_ROWS + 1  # prisms that found no EPA memory left and ran MPR instead
+# rows of EPA memory (each a GJK/EPA run's scratch, about 5 kB): hfield_ccd's threads, then those
+# of hfield_contacts' threads that run GJK/EPA beyond the queue
 CCD_THREADS = 8192
 
 
@@ -383,11 +388,15 @@ def _job_ccd(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
 @wp.func
 def _job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
                 ms: MeshSupport, mode: int, tp: TerrainPair, code: int, tolerance: float, iterations: int,
-                refine: int, bgeom: Geom, ccd_in: PrismCcd, row: int, worldid: int,
-                overflow_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
-  """MPR job ``code``'s answer (_job_mpr), or GJK/EPA's for a prism against a box or a mesh."""
+                refine: int, bgeom: Geom, ccd_in: PrismCcd, row: int, worldid: int, overflow_out: wp.array(dtype=int),
+                count_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
+  """MPR job ``code``'s answer (_job_mpr), or GJK/EPA's for a prism against a box or a mesh on EPA
+  memory ``row`` (MPR's when no row was left: counted in COUNT_CCD_AS_MPR)."""
   if _uses_ccd(b, code):
-    return _job_ccd(hfield_data, adr, nrow, ncol, size, bgeom, b.gtype, tp, code, ccd_in, row, worldid, overflow_out)
+    if row >= 0 and row < ccd_in.vert.shape[0]:
+      return _job_ccd(hfield_data, adr, nrow, ncol, size, bgeom, b.gtype, tp, code, ccd_in, row, worldid,
+                      overflow_out)
+    wp.atomic_add(count_out, COUNT_CCD_AS_MPR, 1)
   return _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, mode, tp, code, tolerance, iterations, refine)
 
 
@@ -666,15 +675,13 @@ def hfield_mpr(
   hfield_pair_in: wp.array(dtype=TerrainPair),
   hfield_job_in: wp.array(dtype=wp.vec2i),
   order_in: wp.array(dtype=int),
-  ccd_in: PrismCcd,
   nthread: int,
   # Out:
-  overflow_out: wp.array(dtype=int),
   answer_out: wp.array(dtype=wp.vec4),
   normal_out: wp.array(dtype=wp.vec3),
 ):
-  """The queued terrain MPRs (GJK/EPA for a box's or a mesh's prisms), one thread a job in
-  hfield_order's order: the contact point and depth (0: none) and the normal, for hfield_contacts."""
+  """The queued terrain MPRs, one thread a job in hfield_order's order: the contact point and
+  depth (0: none) and the normal, for hfield_contacts (a box's or a mesh's prisms: hfield_ccd)."""
   tid = wp.tid()
   for i in range(tid, wp.min(hfield_count_in[COUNT_JOBS], hfield_job_in.shape[0]), nthread):
     j = order_in[i]
@@ -683,14 +690,59 @@ def hfield_mpr(
     worldid = pair_worldid_in[tp.cid]
     _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, pair_in[tp.cid],
                              worldid)
-    bgeom = Geom()
     if _uses_ccd(b, job[1]):
-      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, pair_in[tp.cid], worldid)
-    answer, normal = _job_answer(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b,
-                                 ms, support_mode, tp, job[1], tolerance, iterations, refine, bgeom, ccd_in, tid,
-                                 worldid, overflow_out)
+      continue  # hfield_ccd's
+    answer, normal = _job_mpr(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
+                              support_mode, tp, job[1], tolerance, iterations, refine)
     answer_out[j] = answer
     normal_out[j] = normal
+
+
+@wp.kernel(enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+def hfield_ccd(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  hfield_size: wp.array(dtype=wp.vec4),
+  hfield_nrow: wp.array(dtype=int),
+  hfield_ncol: wp.array(dtype=int),
+  hfield_adr: wp.array(dtype=int),
+  hfield_data: wp.array(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
+  pair_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  hfield_pair_in: wp.array(dtype=TerrainPair),
+  hfield_job_in: wp.array(dtype=wp.vec2i),
+  kind_end_in: wp.array(dtype=int),
+  order_in: wp.array(dtype=int),
+  ccd_in: PrismCcd,
+  nthread: int,
+  # Out:
+  overflow_out: wp.array(dtype=int),
+  answer_out: wp.array(dtype=wp.vec4),
+  normal_out: wp.array(dtype=wp.vec3),
+):
+  """The queued prisms of boxes and meshes by GJK/EPA (_job_ccd), one thread a job of those two
+  kinds in hfield_order's order, each thread on its own row of EPA memory (nthread rows)."""
+  tid = wp.tid()
+  for t in range(2):
+    kind = wp.where(t == 0, 2 * int(GeomType.BOX), 2 * int(GeomType.MESH))  # their prisms
+    for i in range(kind_end_in[kind - 1] + tid, kind_end_in[kind], nthread):
+      j = order_in[i]
+      job = hfield_job_in[j]
+      tp = hfield_pair_in[job[0]]
+      worldid = pair_worldid_in[tp.cid]
+      geoms = pair_in[tp.cid]
+      hf = geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
+      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+      answer, normal = _job_ccd(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], bgeom,
+                                geom_type[geoms[1]], tp, job[1], ccd_in, tid, worldid, overflow_out)
+      answer_out[j] = answer
+      normal_out[j] = normal
 
 
 @wp.kernel(enable_backward=False)
@@ -738,7 +790,6 @@ def hfield_contacts(
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
-  hfield_count_in: wp.array(dtype=int),
   hfield_pair_in: wp.array(dtype=TerrainPair),
   hfield_job_in: wp.array(dtype=wp.vec2i),
   answer_in: wp.array(dtype=wp.vec4),
@@ -748,6 +799,9 @@ def hfield_contacts(
   quota: ContactQuota,
   # Data out:
   overflow_out: wp.array(dtype=int),
+  # Out:
+  hfield_count_out: wp.array(dtype=int),
+  # Data out:
   contact_dist_out: wp.array(dtype=float),
   contact_pos_out: wp.array(dtype=wp.vec3),
   contact_frame_out: wp.array(dtype=wp.mat33),
@@ -769,7 +823,8 @@ def hfield_contacts(
   its MPR answers in job order (running those the queue had no room for), merged
   (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
   tid = wp.tid()
-  for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
+  row = int(-1)  # this thread's row of EPA memory, taken when it first runs GJK/EPA beyond the queue
+  for slot in range(tid, wp.min(hfield_count_out[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
     tp = hfield_pair_in[slot]
     cid = tp.cid
     geoms = pair_in[cid]
@@ -797,6 +852,8 @@ def hfield_contacts(
     bgeom = Geom()
     if left > 0 and _uses_ccd(b, 0):
       bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+      if row < 0:
+        row = wp.atomic_add(hfield_count_out, COUNT_EPA_ROWS, 1)
     ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
     while left > 0 and code < ncell * NJOB:
       cell = code // NJOB
@@ -806,7 +863,8 @@ def hfield_contacts(
       while mask != 0:
         if (mask & 1) == 1:
           answer, normal = _job_answer(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
-                                       tolerance, iterations, refine, bgeom, ccd_in, tid, worldid, overflow_out)
+                                       tolerance, iterations, refine, bgeom, ccd_in, row, worldid, overflow_out,
+                                       hfield_count_out)
           cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, cell * NJOB + job, answer,
                                   normal, spacing, tolerance)
           left -= 1
@@ -854,7 +912,7 @@ class Buffers:
   order: wp.array  # (MPRs) the queue's jobs grouped by kind, the order hfield_mpr runs them in
   answer: wp.array  # (MPRs) each MPR's point and depth
   normal: wp.array  # (MPRs) and normal
-  ccd_rows: int  # rows of EPA memory: with GJK/EPA (PrismCcd), the MPR and contact kernels' threads
+  ccd_rows: int  # rows of EPA memory (PrismCcd): hfield_ccd's threads (1 without GJK/EPA)
   epa: tuple  # (vert, vert_index, face, face_pr, face_norm2, horizon), ccd_rows rows each
 
 
@@ -871,7 +929,7 @@ def make_buffers(c, nworld: int) -> Buffers:
     epa=(wp.empty((rows, nvert), dtype=wp.vec3), wp.empty((rows, nvert), dtype=int), wp.empty((rows, nface), dtype=int),
          wp.empty((rows, nface), dtype=wp.vec3), wp.empty((rows, nface), dtype=float),
          wp.empty((rows, MJ_MAX_EPAHORIZON), dtype=int)),
-    count=wp.zeros(COUNT_KIND + NKIND, dtype=int),
+    count=wp.zeros(COUNT_CCD_AS_MPR + 1, dtype=int),
     kind_next=wp.zeros(NKIND, dtype=int),
     order=wp.zeros(nmpr, dtype=int),
     pair=wp.zeros(npair, dtype=TerrainPair),
@@ -915,19 +973,27 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
   ccd_in.iterations = c.hfield_ccd_iterations
   ccd_in.epa_iterations = c.hfield_ccd_iterations
   ccd_in.vert, ccd_in.vert_index, ccd_in.face, ccd_in.face_pr, ccd_in.face_norm2, ccd_in.horizon = b.epa
-  nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS, b.ccd_rows if c.hfield_ccd else GRID_THREADS))
-  nthread_contacts = max(1, min(nthread_pair, b.ccd_rows if c.hfield_ccd else GRID_THREADS))
+  nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
   wp.launch(
     hfield_mpr,
     dim=nthread_mpr,
     inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
     + [d.geom_xpos, d.geom_xmat, c.mesh_support, mode, opt.mpr_tolerance, opt.mpr_iterations,
-       opt.mpr_refine, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.order, ccd_in, nthread_mpr],
-    outputs=[d.overflow, b.answer, b.normal],
+       opt.mpr_refine, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.order, nthread_mpr],
+    outputs=[b.answer, b.normal],
   )
+  if c.hfield_ccd:
+    wp.launch(
+      hfield_ccd,
+      dim=b.ccd_rows,
+      inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
+      + [d.geom_xpos, d.geom_xmat, pairs.pair, pairs.pair_worldid, b.pair, b.job, b.kind_next, b.order, ccd_in,
+         b.ccd_rows],
+      outputs=[d.overflow, b.answer, b.normal],
+    )
   wp.launch(
     hfield_contacts,
-    dim=nthread_contacts,
+    dim=nthread_pair,
     inputs=[
       m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
       m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
@@ -935,8 +1001,8 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
       m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, mode,
       opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
       opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid,
-      pairs.pair_worldid, b.count, b.pair, b.job, b.answer, b.normal, ccd_in,
-      nthread_contacts, quota,
+      pairs.pair_worldid, b.pair, b.job, b.answer, b.normal, ccd_in,
+      nthread_pair, quota,
     ],
-    outputs=[d.overflow] + contact_outputs(d),
+    outputs=[d.overflow, b.count] + contact_outputs(d),
   )

@@ -905,7 +905,7 @@ def check_model(mjm: mujoco.MjModel) -> None:
 class Buffers:
   """The heightfield stage's per-Data buffers."""
 
-  count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind (COUNT_*)
+  count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind, EPA rows taken, ... (COUNT_*)
   pair: wp.array  # (pairs) TerrainPair
   job: wp.array  # (MPRs) the MPR queue: (index into pair, cell * NJOB + job)
   kind_next: wp.array  # (NKIND) next place of each kind of job in order
@@ -939,6 +939,20 @@ def make_buffers(c, nworld: int) -> Buffers:
   )
 
 
+def prism_ccd(c, m, b: Buffers) -> PrismCcd:
+  """The model's meshes, MuJoCo's GJK/EPA options (MuJoCo C's ccd_iterations for GJK and EPA, as
+  MuJoCo Warp's heightfield kernel runs them) and the EPA memory of ``b``, for the kernels."""
+  ccd_in = PrismCcd()
+  for field in ("vertadr", "vertnum", "graphadr", "vert", "graph", "polynum", "polyadr", "polynormal", "polyvertadr",
+                "polyvertnum", "polyvert", "polymapadr", "polymapnum", "polymap"):
+    setattr(ccd_in, "mesh_" + field, getattr(m, "mesh_" + field))
+  ccd_in.tolerance = m.opt.ccd_tolerance
+  ccd_in.iterations = c.hfield_ccd_iterations
+  ccd_in.epa_iterations = c.hfield_ccd_iterations
+  ccd_in.vert, ccd_in.vert_index, ccd_in.face, ccd_in.face_pr, ccd_in.face_norm2, ccd_in.horizon = b.epa
+  return ccd_in
+
+
 def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
   """Heightfield - convex pairs of one step: windows and MPR queue, the queue grouped by kind,
   the queued MPRs, then the contacts (``c``: the Collider; ``pairs``: the broad phase's buffers)."""
@@ -965,14 +979,7 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
     inputs=[m.geom_type, pairs.pair, b.count, b.pair, b.job, nthread_pair],
     outputs=[b.kind_next, b.order],
   )
-  ccd_in = PrismCcd()
-  for field in ("vertadr", "vertnum", "graphadr", "vert", "graph", "polynum", "polyadr", "polynormal", "polyvertadr",
-                "polyvertnum", "polyvert", "polymapadr", "polymapnum", "polymap"):
-    setattr(ccd_in, "mesh_" + field, getattr(m, "mesh_" + field))
-  ccd_in.tolerance = m.opt.ccd_tolerance
-  ccd_in.iterations = c.hfield_ccd_iterations
-  ccd_in.epa_iterations = c.hfield_ccd_iterations
-  ccd_in.vert, ccd_in.vert_index, ccd_in.face, ccd_in.face_pr, ccd_in.face_norm2, ccd_in.horizon = b.epa
+  ccd_in = prism_ccd(c, m, b)
   nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
   wp.launch(
     hfield_mpr,

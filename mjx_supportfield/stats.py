@@ -19,6 +19,8 @@ class CollisionStats(dict):
     dropped_contacts_per_world: those beyond each world's rows (all 0 without contacts_per_world).
     warm_start_misses: pairs whose warm-started MPR missed and ran again cold.
     hfield_mprs_unqueued: terrain MPRs the heightfield queue had no room for.
+    hfield_ccd_as_mpr: prisms of boxes and meshes on a heightfield that found no row of GJK/EPA
+      memory left and ran MPR instead (a contact of the prism's deepest point, not EPA's).
     path: "plugin", or "stock" where MuJoCo Warp's own collision stage ran
       (``Options.stock_for_analytic_models``); then ``pairs`` is its pair count, the per-world
       lists are empty and the plugin's other counters 0.
@@ -70,6 +72,8 @@ class CollisionStats(dict):
     else:
       lines.append("worlds with NaN or inf geom poses: 0")
     lines.append(f"warm-start misses: {self['warm_start_misses']}")
+    if self.get("hfield_ccd_as_mpr"):
+      lines.append(f"heightfield prisms without GJK/EPA memory (ran MPR): {self['hfield_ccd_as_mpr']}")
     if self["hfield_mprs_unqueued"]:
       lines.append(f"heightfield MPRs beyond the queue: {self['hfield_mprs_unqueued']} (run one after another; "
                    "raise Options.hfield_mprs_per_pair)")
@@ -102,12 +106,14 @@ def collect(c, d, st) -> CollisionStats:
     return CollisionStats({"path": "stock", "pairs": int(d.ncollision.numpy()[0]), "pairs_per_world": [],
                            "dropped_pairs_per_world": [], "nonfinite_worlds": [],
                            "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
-                           "dropped_contacts_per_world": [], "warm_start_misses": 0, "hfield_mprs_unqueued": 0})
+                           "dropped_contacts_per_world": [], "warm_start_misses": 0, "hfield_mprs_unqueued": 0,
+                           "hfield_ccd_as_mpr": 0})
   if st is None:
     return CollisionStats({"path": "plugin", "pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
                            "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
-                           "hfield_mprs_unqueued": 0})
-  from mjx_supportfield.heightfield import COUNT_UNQUEUED  # the heightfield module builds kernels on import
+                           "hfield_mprs_unqueued": 0, "hfield_ccd_as_mpr": 0})
+  from mjx_supportfield.heightfield import COUNT_CCD_AS_MPR  # the heightfield module builds kernels on import
+  from mjx_supportfield.heightfield import COUNT_UNQUEUED
 
   broad = st.broad
   return CollisionStats({
@@ -120,6 +126,7 @@ def collect(c, d, st) -> CollisionStats:
     "warm_start_misses": int(st.warm.misses.numpy()[0]) if c.options.warm_start else 0,
     # terrain MPRs that found the heightfield queue full and ran in their pair's thread
     "hfield_mprs_unqueued": int(st.hfield.count.numpy()[COUNT_UNQUEUED]),
+    "hfield_ccd_as_mpr": int(st.hfield.count.numpy()[COUNT_CCD_AS_MPR]),
   })
 
 

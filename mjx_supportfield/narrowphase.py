@@ -68,8 +68,12 @@ TILT_PAIRS_PER_WORLD = 32
 
 
 @functools.lru_cache(maxsize=None)
-def analytic_kernel(pair_types: tuple):
-  """Grid-stride kernel running MuJoCo Warp's analytic routine of each pair type present."""
+def analytic_kernel(pair_types: tuple, per_world: bool = False):
+  """Grid-stride kernel running MuJoCo Warp's analytic routine of each pair type present.
+
+  ``per_world`` (Options.contacts_per_world > 0): the routines write through views of each
+  world's rows (contact_quota.world_rows). Without it they get the contact arrays themselves:
+  the views would hold fifteen pointers in registers through every routine for nothing."""
   funcs = [_PRIMITIVE_COLLISIONS[t] for t in pair_types]
 
   @wp.kernel(module="unique", enable_backward=False)
@@ -146,14 +150,24 @@ def analytic_kernel(pair_types: tuple):
       type1 = geom_type[geoms[0]]
       type2 = geom_type[geoms[1]]
       worldid = pair_worldid_in[cid]
-      (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-       rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
-       rows_nacon) = world_rows(
-        quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-        contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-        contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-        contact_adhesion_out, nacon_out,
-      )
+      if wp.static(per_world):
+        (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
+         rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
+         rows_geomcollisionid, rows_adhesion, rows_nacon) = world_rows(
+          quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+          contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+          contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out,
+          contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+        )
+      else:
+        (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
+         rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
+         rows_geomcollisionid, rows_adhesion, rows_nacon) = (
+          naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+          contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+          contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out,
+          contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+        )
       for i in range(wp.static(len(funcs))):
         if type1 == wp.static(pair_types[i][0]) and type2 == wp.static(pair_types[i][1]):
           _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
@@ -623,7 +637,7 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
     )
   if c.analytic_types:
     wp.launch(
-      analytic_kernel(c.analytic_types),
+      analytic_kernel(c.analytic_types, bool(opt.contacts_per_world)),
       dim=nthread_analytic,
       inputs=[
         m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,

@@ -19,6 +19,9 @@ class CollisionStats(dict):
     dropped_contacts_per_world: those beyond each world's rows (all 0 without contacts_per_world).
     warm_start_misses: pairs whose warm-started MPR missed and ran again cold.
     hfield_mprs_unqueued: terrain MPRs the heightfield queue had no room for.
+    deep_pairs: MPR answers deep enough to be checked along the shapes' faces (deep_pairs.py),
+      those beyond its queue included.
+    deep_pairs_unchecked: of those, the ones beyond the queue: they kept MPR's answer.
 
   ``str(stats)`` (and ``print``) gives ``summary()``: totals, and the few worlds with the most pairs
   or drops, instead of three lists of nworld numbers; ``repr`` gives the totals on one line.
@@ -63,6 +66,9 @@ class CollisionStats(dict):
     else:
       lines.append("worlds with NaN or inf geom poses: 0")
     lines.append(f"warm-start misses: {self['warm_start_misses']}")
+    if self.get("deep_pairs_unchecked"):
+      lines.append(f"deep pairs beyond the check's queue: {self['deep_pairs_unchecked']} of {self['deep_pairs']} "
+                   "(they kept MPR's answer)")
     if self["hfield_mprs_unqueued"]:
       lines.append(f"heightfield MPRs beyond the queue: {self['hfield_mprs_unqueued']} (run one after another; "
                    "raise Options.hfield_mprs_per_pair)")
@@ -92,7 +98,7 @@ def collect(c, d, st) -> CollisionStats:
   if st is None:
     return CollisionStats({"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
                            "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
-                           "hfield_mprs_unqueued": 0})
+                           "hfield_mprs_unqueued": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0})
   from mjx_supportfield.heightfield import COUNT_UNQUEUED  # the heightfield module builds kernels on import
 
   broad = st.broad
@@ -105,7 +111,14 @@ def collect(c, d, st) -> CollisionStats:
     "warm_start_misses": int(st.warm.misses.numpy()[0]) if c.options.warm_start else 0,
     # terrain MPRs that found the heightfield queue full and ran in their pair's thread
     "hfield_mprs_unqueued": int(st.hfield.count.numpy()[COUNT_UNQUEUED]),
+    **_deep_pairs(st),
   })
+
+
+def _deep_pairs(st) -> dict:
+  """MPR answers sent to the deep-pair check, and those beyond its queue."""
+  pushed = int(st.deep.count.numpy()[0])
+  return {"deep_pairs": pushed, "deep_pairs_unchecked": max(0, pushed - st.deep.pair.shape[0])}
 
 
 def _dropped_contacts(c, d, st) -> dict:

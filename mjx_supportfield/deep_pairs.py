@@ -6,9 +6,10 @@ along the normal it found. On a deep polytope pair A - B has several faces that 
 projects into, and MPR can settle on one that is not the nearest: a dodecahedron sunk into a
 tetrahedron came out 2.95 mm deep along one of its own faces, 59 deg from the penetration
 direction, where a face of the tetrahedron gives 2.11 mm. A polytope pair's penetration
-direction is a face normal of either shape or a cross product of their edges, so scanning the
-face normals, then rerunning MPR along the one of least overlap (its refinement walks on to an
-edge-edge face of A - B where that is nearer), finds the nearer face.
+direction is a face normal of either shape or a cross product of their edges: the check scans
+every face normal of both shapes, walks from the best of them (and from MPR's normal) over the
+crosses of the edges at the support points, and reruns MPR along the direction of least overlap
+(its refinement settles on that face of A - B).
 
 The scan reads every hull face, too heavy for the convex kernel's registers; only answers the
 convex kernel finds suspicious (``narrowphase.suspect_deep``: deeper than ``DEEP_GATE`` x the
@@ -42,6 +43,8 @@ from mjx_supportfield.narrowphase import HEAVY_REGISTERS
 from mjx_supportfield.narrowphase import wants_patch
 from mjx_supportfield.narrowphase import write_pair_contacts
 from mjx_supportfield.shapes import posed_pair
+from mjx_supportfield.support import hull_point
+from mjx_supportfield.support import mesh_support_index
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_MODE_ID
@@ -51,9 +54,10 @@ from mjx_supportfield.types import Shape
 # queue rows per world: deep answers are few (a body sunk into another), and a pair beyond the
 # queue only keeps MPR's answer
 DEEP_PAIRS_PER_WORLD = 16
-# a face must overlap less than this fraction of the overlap along MPR's normal to be worth an
-# MPR: a face that ties with MPR's own (float32 rounding apart) would only rerun the same answer
-FACE_GAIN = 1.0e-4
+# a direction must overlap less than this fraction of the overlap along MPR's normal to be worth
+# an MPR: one that ties with MPR's own face (float32 rounding apart) would only rerun the same answer
+MIN_GAIN = 1.0e-4
+EDGE_ROUNDS = 4  # steps of the walk over edge-edge directions (_descend_edges)
 
 
 @dataclasses.dataclass
@@ -109,13 +113,79 @@ def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, sign
 
 
 @wp.func
-def least_face_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec4:
-  """Of ``normal`` and the face normals of A and B (directions from A to B), the one along which
-  A and B overlap least, and that overlap (xyz, w)."""
-  best = wp.vec4(normal[0], normal[1], normal[2], FAR)
-  best = _shallower(a, b, ms, mode, normal, best)
-  best = _face_normals(a, a, b, ms, mode, 1.0, best)
-  return _face_normals(b, a, b, ms, mode, -1.0, best)
+def _support_vertex(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> int:
+  """Local hull index of a mesh shape's support vertex for world direction d; -1 for other types."""
+  if s.gtype == GeomType.MESH:
+    return mesh_support_index(ms, s.mesh, wp.transpose(s.rot) @ d, mode)
+  return -1
+
+
+@wp.func
+def _edge_count(s: Shape, ms: MeshSupport, vertex: int) -> int:
+  """Edges of s at its support point: a box's 3 directions, a mesh's hull edges at its support
+  vertex; none for curved shapes."""
+  if s.gtype == GeomType.BOX:
+    return 3
+  if s.gtype == GeomType.MESH:
+    return ms.nbr_num[ms.hull_adr[s.mesh] + vertex]
+  return 0
+
+
+@wp.func
+def _edge(s: Shape, ms: MeshSupport, vertex: int, k: int) -> wp.vec3:
+  """The k-th edge (world direction, not unit) of s at its support point (see _edge_count)."""
+  if s.gtype == GeomType.BOX:
+    return wp.vec3(s.rot[0, k], s.rot[1, k], s.rot[2, k])
+  other = ms.nbr[ms.nbr_adr[ms.hull_adr[s.mesh] + vertex] + k]
+  return s.rot @ (hull_point(ms, s.mesh, other) - hull_point(ms, s.mesh, vertex))
+
+
+@wp.func
+def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+  """best improved by the cross products of the edges of A and B at their support points along
+  best's direction (each turned to point from A to B)."""
+  u = wp.vec3(best[0], best[1], best[2])
+  va = _support_vertex(a, ms, u, mode)
+  vb = _support_vertex(b, ms, -u, mode)
+  nb = _edge_count(b, ms, vb)
+  for i in range(_edge_count(a, ms, va)):
+    ea = _edge(a, ms, va, i)
+    for j in range(nb):
+      eb = _edge(b, ms, vb, j)
+      c = wp.cross(ea, eb)
+      if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
+        c = wp.normalize(c)
+        best = _shallower(a, b, ms, mode, wp.where(wp.dot(c, u) < 0.0, -c, c), best)
+  return best
+
+
+@wp.func
+def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+  """best improved by walking over edge-edge directions: the crosses of the edges at the support
+  points, again from the better one found, up to EDGE_ROUNDS times. A polytope pair's
+  penetration direction need not be a face normal of either shape; where it is an edge-edge
+  direction, its edges lie at the support points of directions near it."""
+  for _ in range(EDGE_ROUNDS):
+    start = best[3]
+    best = _edge_crosses(a, b, ms, mode, best)
+    if not (best[3] < start):
+      break
+  return best
+
+
+@wp.func
+def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec4:
+  """Of ``normal``, the face normals of A and B and the edge-edge directions found near the best
+  of those and near ``normal`` (all from A to B), the one along which A and B overlap least, and
+  that overlap (xyz, w)."""
+  start = wp.vec4(normal[0], normal[1], normal[2], FAR)
+  start = _shallower(a, b, ms, mode, normal, start)
+  best = _face_normals(a, a, b, ms, mode, 1.0, start)
+  best = _descend_edges(a, b, ms, mode, _face_normals(b, a, b, ms, mode, -1.0, best))
+  near = _descend_edges(a, b, ms, mode, start)
+  if near[3] < best[3]:
+    return near
+  return best
 
 
 @wp.func
@@ -123,14 +193,14 @@ def checked_answer(
   a: Shape, b: Shape, ms: MeshSupport, mode: int, res: MprResult, scale: float, tol: float, iterations: int,
   refine: int,
 ) -> MprResult:
-  """MPR's answer res, or MPR's rerun (refined) along the face normal of least overlap when that
-  comes out shallower."""
+  """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
+  (least_overlap) when that comes out shallower."""
   along = overlap_along(a, b, ms, mode, res.normal)
-  face = least_face_overlap(a, b, ms, mode, res.normal)
-  if not (face[3] < (1.0 - FACE_GAIN) * along - tol * scale):
+  least = least_overlap(a, b, ms, mode, res.normal)
+  if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
     return res
-  u = wp.vec3(face[0], face[1], face[2])
-  r = mpr_refined_from(a, b, ms, mode, behind_origin(a, b, ms, mode, u, face[3], scale, BEHIND), scale, tol,
+  u = wp.vec3(least[0], least[1], least[2])
+  r = mpr_refined_from(a, b, ms, mode, behind_origin(a, b, ms, mode, u, least[3], scale, BEHIND), scale, tol,
                        iterations, refine, BEHIND)
   if r.hit != 0 and r.depth < res.depth - tol * scale:
     return r

@@ -51,9 +51,9 @@ from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
-# queue rows per world: deep answers are few (a body sunk into another), and a pair beyond the
-# queue only keeps MPR's answer
-DEEP_PAIRS_PER_WORLD = 16
+# queue rows per world (pooled over the worlds): a robot whose link meshes overlap at rest has
+# tens of deep answers a world; a pair beyond the queue only keeps MPR's answer (counted)
+DEEP_PAIRS_PER_WORLD = 64
 # a direction must overlap less than this fraction of the overlap along MPR's normal to be worth
 # an MPR: one that ties with MPR's own face (float32 rounding apart) would only rerun the same answer
 MIN_GAIN = 1.0e-4

@@ -65,7 +65,7 @@ TILT_PAIRS_PER_WORLD = 32
 # MPR answers deeper than this x the smaller shape's bounding radius, on a pair with a face, go to
 # deep_pairs.py's check: resting contacts sink a small fraction of that, and on a deep polytope
 # pair MPR can settle on a face of A - B that is not the nearest
-DEEP_GATE = 0.05
+DEEP_GATE = 0.1
 
 
 @functools.lru_cache(maxsize=None)

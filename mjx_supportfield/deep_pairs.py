@@ -58,6 +58,9 @@ DEEP_PAIRS_PER_WORLD = 64
 # an MPR: one that ties with MPR's own face (float32 rounding apart) would only rerun the same answer
 MIN_GAIN = 1.0e-4
 EDGE_ROUNDS = 4  # steps of the walk over edge-edge directions (_descend_edges)
+# pairs with at most this many edge pairs (a box has 3 edge directions) also try every one: two
+# support queries each
+EDGE_PAIR_BUDGET = 1024
 
 
 @dataclasses.dataclass
@@ -151,11 +154,69 @@ def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4)
   for i in range(_edge_count(a, ms, va)):
     ea = _edge(a, ms, va, i)
     for j in range(nb):
-      eb = _edge(b, ms, vb, j)
-      c = wp.cross(ea, eb)
-      if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-        c = wp.normalize(c)
-        best = _shallower(a, b, ms, mode, wp.where(wp.dot(c, u) < 0.0, -c, c), best)
+      best = _cross_direction(a, b, ms, mode, ea, _edge(b, ms, vb, j), u, best)
+  return best
+
+
+@wp.func
+def _cross_direction(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, ea: wp.vec3, eb: wp.vec3, u: wp.vec3, best: wp.vec4
+) -> wp.vec4:
+  """best improved by the cross product of edges ea (of A) and eb (of B), turned to the side of u."""
+  c = wp.cross(ea, eb)
+  if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
+    c = wp.normalize(c)
+    best = _shallower(a, b, ms, mode, wp.where(wp.dot(c, u) < 0.0, -c, c), best)
+  return best
+
+
+@wp.func
+def _edge_ends(s: Shape, ms: MeshSupport) -> int:
+  """Edge ends of s: a mesh's hull edges counted at both ends; a box's 3 directions; 0 else."""
+  if s.gtype == GeomType.BOX:
+    return 3
+  total = int(0)
+  if s.gtype == GeomType.MESH:
+    for v in range(ms.hull_num[s.mesh]):
+      total += ms.nbr_num[ms.hull_adr[s.mesh] + v]
+  return total
+
+
+@wp.func
+def _crosses_with_edge(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, ea: wp.vec3, u: wp.vec3, best: wp.vec4
+) -> wp.vec4:
+  """best improved by the crosses of edge ea of A with every edge of B (each once)."""
+  if b.gtype == GeomType.BOX:
+    for k in range(3):
+      best = _cross_direction(a, b, ms, mode, ea, wp.vec3(b.rot[0, k], b.rot[1, k], b.rot[2, k]), u, best)
+  elif b.gtype == GeomType.MESH:
+    for v in range(ms.hull_num[b.mesh]):
+      g = ms.hull_adr[b.mesh] + v
+      for k in range(ms.nbr_num[g]):
+        other = ms.nbr[ms.nbr_adr[g] + k]
+        if other > v:
+          eb = b.rot @ (hull_point(ms, b.mesh, other) - hull_point(ms, b.mesh, v))
+          best = _cross_direction(a, b, ms, mode, ea, eb, u, best)
+  return best
+
+
+@wp.func
+def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+  """best improved by the crosses of every edge of A with every edge of B (turned to the side of
+  best's direction)."""
+  u = wp.vec3(best[0], best[1], best[2])
+  if a.gtype == GeomType.BOX:
+    for k in range(3):
+      best = _crosses_with_edge(a, b, ms, mode, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), u, best)
+  elif a.gtype == GeomType.MESH:
+    for v in range(ms.hull_num[a.mesh]):
+      g = ms.hull_adr[a.mesh] + v
+      for k in range(ms.nbr_num[g]):
+        other = ms.nbr[ms.nbr_adr[g] + k]
+        if other > v:
+          ea = a.rot @ (hull_point(ms, a.mesh, other) - hull_point(ms, a.mesh, v))
+          best = _crosses_with_edge(a, b, ms, mode, ea, u, best)
   return best
 
 
@@ -176,15 +237,19 @@ def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4
 @wp.func
 def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec4:
   """Of ``normal``, the face normals of A and B and the edge-edge directions found near the best
-  of those and near ``normal`` (all from A to B), the one along which A and B overlap least, and
-  that overlap (xyz, w)."""
+  of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
+  the one along which A and B overlap least, and that overlap (xyz, w)."""
   start = wp.vec4(normal[0], normal[1], normal[2], FAR)
   start = _shallower(a, b, ms, mode, normal, start)
   best = _face_normals(a, a, b, ms, mode, 1.0, start)
   best = _descend_edges(a, b, ms, mode, _face_normals(b, a, b, ms, mode, -1.0, best))
   near = _descend_edges(a, b, ms, mode, start)
   if near[3] < best[3]:
-    return near
+    best = near
+  # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
+  # where it starts)
+  if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
+    best = _all_edge_crosses(a, b, ms, mode, best)
   return best
 
 

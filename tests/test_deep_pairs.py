@@ -194,3 +194,21 @@ def test_deep_pairs_beyond_the_queue_keep_mpr_answer(monkeypatch):
     mjd.qpos[:] = qpos[w]
     mujoco.mj_kinematics(mjm, mjd)
     assert mujoco.mj_geomDistance(mjm, mjd, 0, 1, 1.0, None) > -1e-5, f"world {w}: overlap but no contact"
+
+
+def test_deep_hull_box_edge_edge():
+  """A hull deep in a box (random example 117, pose 4) whose penetration direction is an
+  edge-edge one 64 degrees from the best face normal, out of reach of the walk from the faces:
+  every edge pair of the small hull and the box is tried, and the answer is as good as EPA's."""
+  mjm, qpos = _example(117)
+  normals = {}
+  for name, options in (("mpr", sf.Options()), ("gjk", sf.Options(narrowphase="gjk"))):
+    sim = load(None, mjm=mjm, nworld=1, qpos=qpos[4])
+    sf.install(mjm, sim.m, options)
+    sf.collision(sim.m, sim.d)
+    normals[name] = deepest(contacts(sim.d, 0))
+  (g1, g2), normal = normals["mpr"]
+  assert normals["gjk"][0] == (g1, g2)
+  xpos, xmat = exact.geom_poses(mjm, qpos[4])
+  mine, epa = (overlap(mjm, g1, g2, xpos, xmat, n) for n in (normal, normals["gjk"][1]))
+  assert mine <= epa + OVERLAP_TOL, f"overlap {mine * 1e3:.3f} mm along the normal, EPA's {epa * 1e3:.3f} mm"

@@ -8,8 +8,8 @@ tetrahedron came out 2.95 mm deep along one of its own faces, 59 deg from the pe
 direction, where a face of the tetrahedron gives 2.11 mm. A polytope pair's penetration
 direction is a face normal of either shape or a cross product of their edges: the check scans
 every face normal of both shapes, walks from the best of them (and from MPR's normal) over the
-crosses of the edges at the support points, and reruns MPR along the direction of least overlap
-(its refinement settles on that face of A - B).
+crosses of the edges at the support points (on small hulls tries every edge pair), and reruns MPR
+along the direction of least overlap (its refinement settles on that face of A - B).
 
 The scan reads every hull face, too heavy for the convex kernel's registers; only answers the
 convex kernel finds suspicious (``narrowphase.suspect_deep``: deeper than ``DEEP_GATE`` x the

@@ -24,6 +24,7 @@ import time
 import warp as wp
 
 from mjx_supportfield import broadphase
+from mjx_supportfield import deep_pairs
 from mjx_supportfield import heightfield
 from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
@@ -44,6 +45,7 @@ def kernels() -> dict:
     "sift MPR pairs": narrowphase.sift_mpr_pairs,
     "convex (MPR)": narrowphase.convex_kernel(False),
     "convex (GJK/EPA)": narrowphase.convex_kernel(True),
+    "deep pairs (check)": deep_pairs.deep_pair_kernel,
     "tilt (closed form)": multicontact_pass.tilt_kernel,
     "tilt (MPR)": multicontact_pass.tilt_mpr_kernel,
     "patch (multi-contact)": multicontact_pass.patch_kernel,

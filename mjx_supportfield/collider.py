@@ -1,7 +1,7 @@
 """The installed collision stage: the driver that runs the stages in pipeline order.
 
 Each stage module owns its kernels, its per-Data buffers and the function that launches them
-(``broadphase.launch``, ``narrowphase.launch``, ``multicontact_pass.launch_multicontact``,
+(``broadphase.launch``, ``narrowphase.launch``, ``deep_pairs.launch``, ``multicontact_pass.launch_multicontact``,
 ``heightfield.launch``, ``nonconvex.launch``, ``contact_quota.start`` / ``pack``,
 ``contact_sort.sort_contacts``, ``stage_ends``). This module holds the model-time data the stages read (``Collider``), the
 per-Data state (``DataState``: one buffer set per stage) and the order of the calls; it launches
@@ -25,6 +25,7 @@ from mujoco_warp._src.types import OverflowType
 from mjx_supportfield import broadphase
 from mjx_supportfield import contact_quota
 from mjx_supportfield import contact_sort
+from mjx_supportfield import deep_pairs
 from mjx_supportfield import heightfield
 from mjx_supportfield import multicontact_pass
 from mjx_supportfield import nonconvex
@@ -52,6 +53,7 @@ class DataState:
 
   broad: broadphase.Buffers  # boxes, pair list, the pairs left to MuJoCo Warp (stock_ctx)
   narrow: narrowphase.Buffers  # narrow-phase and multi-contact queues
+  deep: deep_pairs.Buffers  # MPR's deep answers queued for their check
   hfield: heightfield.Buffers
   warm: warmstart.WarmCache
   quota: contact_quota.QuotaBuffers  # each world's contact rows (Options.contacts_per_world)
@@ -142,6 +144,7 @@ class Collider:
         st = DataState(
           broad=broad,
           narrow=narrowphase.make_buffers(self, d.nworld, broad.capacity),
+          deep=deep_pairs.make_buffers(d.nworld, broad.capacity),
           hfield=heightfield.make_buffers(self, d.nworld),
           warm=warmstart.make_cache(d.nworld, self.warm_slots if self.options.warm_start else 1),
           quota=contact_quota.make_buffers(d.nworld, self.options.contacts_per_world),
@@ -208,17 +211,16 @@ class Collider:
     stage_ends.start(d, st, incremental, bool(self.mpr_types) and self.options.warm_start)
     if per_world:
       contact_quota.start(d, st.quota, per_world)
-
     quota = st.quota.quota
     broadphase.launch(self, m, d, st.broad, st.narrow.queues, awake_prev)
-    narrowphase.launch(self, m, d, st.broad, st.narrow, st.warm, quota)
+    narrowphase.launch(self, m, d, st.broad, st.narrow, st.warm, quota, st.deep)
+    # before the multi-contact pass: a checked pair joins its queue with the corrected normal
+    deep_pairs.launch(self, m, d, st.broad, st.deep, st.narrow, st.warm, quota)
     multicontact_pass.launch_multicontact(self, m, d, st.broad, st.narrow, quota)
     heightfield.launch(self, m, d, st.broad, st.hfield, quota)
     nonconvex.launch(self, m, d, st.broad, quota)
-    if self.has_stock_pairs:
-      # SDF geoms and collision-sensor pairs: MuJoCo Warp's own narrow phase
+    if self.has_stock_pairs:  # SDF geoms, collision-sensor pairs: MuJoCo Warp's own narrow phase
       collision_driver._narrowphase(m, d, st.broad.stock_ctx)
-
     if m.nflex > 0 and not incremental:
       collision_driver.flex_collision(m, d, st.broad.stock_ctx)
     sort = m.opt.deterministic & DeterminismType.CONTACTS
@@ -238,7 +240,7 @@ class Collider:
 
   # --- diagnostics --------------------------------------------------------------------
 
-  def stats(self, d) -> "CollisionStats":
+  def stats(self, d) -> dict:
     """Host-side counters of the last collision on ``d`` (reads the device: not for graphs): a
     ``CollisionStats``, a dict of counters (per-world lists included; its docstring names them)
     that prints as a summary."""

@@ -51,6 +51,7 @@ from mjx_supportfield.sdf import sdf_contact
 from mjx_supportfield.shapes import posed_pair
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import Shape
 
 # the factories' module="unique" kernels take Warp's global options, not this module's:
 # they turn adjoints off themselves
@@ -65,6 +66,10 @@ GRID_THREADS = 1 << 20  # cap of the grid-stride narrow-phase launches
 # multi-contact pairs per world left to the tilts (no face clipping) whose tilts run in parallel
 # threads (tilt_kernel); pairs beyond run them in patch_kernel's thread: same result, only slower
 TILT_PAIRS_PER_WORLD = 32
+# MPR answers deeper than this x the smaller shape's bounding radius, on a pair with a face, go to
+# deep_pairs.py's check: resting contacts sink a small fraction of that, and on a deep polytope
+# pair MPR can settle on a face of A - B that is not the nearest
+DEEP_GATE = 0.1
 
 
 @functools.lru_cache(maxsize=None)
@@ -320,6 +325,33 @@ def write_pair_contacts(
 
 
 @wp.func
+def suspect_deep(type1: int, type2: int, depth: float, rbound1: float, rbound2: float) -> bool:
+  """Whether MPR's answer of a pair (its depth, margin band off) goes to deep_pairs.py's check:
+  deeper than DEEP_GATE x the smaller bounding radius, with a face on either shape (a mesh, a
+  box or a cylinder) whose normal may be the nearer way out."""
+  faces = (type1 == GeomType.MESH or type1 == GeomType.BOX or type1 == GeomType.CYLINDER
+           or type2 == GeomType.MESH or type2 == GeomType.BOX or type2 == GeomType.CYLINDER)
+  return faces and depth > DEEP_GATE * wp.min(rbound1, rbound2)
+
+
+@wp.func
+def wants_patch(
+  geom_type: wp.array(dtype=int), geoms: wp.vec2i, a: Shape, b: Shape, ms: MeshSupport, res: MprResult,
+  max_contacts: int, mc_perturbation: float,
+) -> bool:
+  """Whether a pair's answer goes to the multi-contact pass: it may touch in more points than
+  MPR's (not spheres and ellipsoids, where one point is the whole contact)."""
+  one_point = (
+    geom_type[geoms[0]] == GeomType.SPHERE
+    or geom_type[geoms[0]] == GeomType.ELLIPSOID
+    or geom_type[geoms[1]] == GeomType.SPHERE
+    or geom_type[geoms[1]] == GeomType.ELLIPSOID
+  )
+  tilt = mc_perturbation * TILT_GROWTH  # the steepest tilt perturbed_contacts tries
+  return max_contacts > 1 and not one_point and patch_possible(a, b, ms, res.normal, tilt, res.depth)
+
+
+@wp.func
 def _apart(
   geom_type: wp.array(dtype=int),
   geom_dataid: wp.array2d(dtype=int),
@@ -446,6 +478,10 @@ def convex_kernel(use_gjk: bool):
     patch_pair: wp.array(dtype=int),
     patch_result: wp.array(dtype=wp.vec4),
     patch_pos: wp.array(dtype=wp.vec3),
+    deep_count: wp.array(dtype=int),
+    deep_pair: wp.array(dtype=int),
+    deep_result: wp.array(dtype=wp.vec4),
+    deep_pos: wp.array(dtype=wp.vec3),
     # Data out:
     contact_dist_out: wp.array(dtype=float),
     contact_pos_out: wp.array(dtype=wp.vec3),
@@ -545,14 +581,18 @@ def convex_kernel(use_gjk: bool):
       if warm_start and not wp.static(use_gjk):
         value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
         warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
-      one_point = (
-        geom_type[g1] == GeomType.SPHERE
-        or geom_type[g1] == GeomType.ELLIPSOID
-        or geom_type[g2] == GeomType.SPHERE
-        or geom_type[g2] == GeomType.ELLIPSOID
-      )
-      tilt = mc_perturbation * TILT_GROWTH  # the steepest tilt perturbed_contacts tries
-      if max_contacts > 1 and not one_point and extra.n == 0 and patch_possible(a, b, ms, res.normal, tilt, res.depth):
+      if not wp.static(use_gjk) and extra.n == 0 and suspect_deep(
+        geom_type[g1], geom_type[g2], res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2]
+      ):
+        # checked by deep_pairs.py, which then queues or writes it as below; beyond the queue's
+        # rows it keeps MPR's answer (counted)
+        slot = wp.atomic_add(deep_count, 0, 1)
+        if slot < deep_pair.shape[0]:
+          deep_pair[slot] = cid
+          deep_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+          deep_pos[slot] = res.pos
+          continue
+      if extra.n == 0 and wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
         # queued for face_pair_kernel, which leaves the pairs without a face pair to the tilts
         slot = wp.atomic_add(patch_count, 0, 1)
         patch_pair[slot] = cid
@@ -617,9 +657,10 @@ def make_buffers(c, nworld: int, capacity: int) -> Buffers:
   return b
 
 
-def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: ContactQuota):
+def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: ContactQuota, deep):
   """The convex pairs of one step: MPR's candidates sifted, the analytic pairs, then MPR's and
-  GJK's pairs (``c``: the Collider; ``pairs``: the broad phase's buffers)."""
+  GJK's pairs (``c``: the Collider; ``pairs``: the broad phase's buffers; ``deep``: the
+  deep-pair queue, deep_pairs.Buffers, that MPR's suspicious answers go to)."""
   nthread = max(1, min(pairs.capacity, GRID_THREADS))
   queue_inputs = [b.queue_count, b.queue_pair, pairs.pair, pairs.pairid, pairs.pair_worldid]  # + the launch's threads
   # analytic pairs are cheap: as many threads as contacts fit, as stock MuJoCo Warp launches them
@@ -668,6 +709,7 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
         c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
         warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses,
       ] + queue_inputs + [nthread, quota],
-      outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos] + contact_outputs(d),
+      outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos, deep.count, deep.pair, deep.result,
+               deep.pos] + contact_outputs(d),
     )
 

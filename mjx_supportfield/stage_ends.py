@@ -2,7 +2,7 @@
 broad phase, and the contacts' surface velocities after the narrow phase.
 
 This module owns ``start_collision`` (one kernel for the counters that the broad phase, the
-narrow phase, the heightfield stage and the warm-start cache own) and its host entry, ``start``,
+narrow phase, the deep-pair check, the heightfield stage and the warm-start cache own) and its host entry, ``start``,
 and ``surface_velocities`` (MuJoCo Warp's kernel, launched as its collision driver does).
 """
 
@@ -32,6 +32,7 @@ def start_collision(
   face_count: wp.array(dtype=int),
   tilt_pair_count: wp.array(dtype=int),
   tilt_count: wp.array(dtype=int),
+  deep_count: wp.array(dtype=int),
   hfield_count: wp.array(dtype=int),
   warm_stamp: wp.array(dtype=int),
   warm_misses: wp.array(dtype=int),
@@ -53,6 +54,7 @@ def start_collision(
   face_count[0] = 0
   tilt_pair_count[0] = 0
   tilt_count[0] = 0
+  deep_count[0] = 0
   for q in range(queue_count.shape[0]):
     queue_count[q] = 0
   for k in range(hfield_count.shape[0]):
@@ -72,7 +74,7 @@ def start(d, st, incremental: bool, warm_start: bool) -> None:
     inputs=[incremental, warm_start],
     outputs=[d.ncollision, d.nacon, broad.ndropped, broad.nonfinite, broad.world_npair, broad.npair, broad.nwarned,
              narrow.queue_count, narrow.patch_count, narrow.face_count, narrow.tilt_pair_count, narrow.tilt_count,
-             st.hfield.count, st.warm.stamp, st.warm.misses],
+             st.deep.count, st.hfield.count, st.warm.stamp, st.warm.misses],
   )
 
 

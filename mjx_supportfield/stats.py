@@ -19,6 +19,9 @@ class CollisionStats(dict):
     dropped_contacts_per_world: those beyond each world's rows (all 0 without contacts_per_world).
     warm_start_misses: pairs whose warm-started MPR missed and ran again cold.
     hfield_mprs_unqueued: terrain MPRs the heightfield queue had no room for.
+    deep_pairs: MPR answers deep enough to be checked along the shapes' faces (deep_pairs.py),
+      those beyond its queue included.
+    deep_pairs_unchecked: of those, the ones beyond the queue: they kept MPR's answer.
     hfield_ccd_as_mpr: prisms of boxes and meshes on a heightfield that found no row of GJK/EPA
       memory left and ran MPR instead (a contact of the prism's deepest point, not EPA's).
     path: "plugin", or "stock" where MuJoCo Warp's own collision stage ran
@@ -74,6 +77,9 @@ class CollisionStats(dict):
     lines.append(f"warm-start misses: {self['warm_start_misses']}")
     if self.get("hfield_ccd_as_mpr"):
       lines.append(f"heightfield prisms without GJK/EPA memory (ran MPR): {self['hfield_ccd_as_mpr']}")
+    if self.get("deep_pairs_unchecked"):
+      lines.append(f"deep pairs beyond the check's queue: {self['deep_pairs_unchecked']} of {self['deep_pairs']} "
+                   "(they kept MPR's answer)")
     if self["hfield_mprs_unqueued"]:
       lines.append(f"heightfield MPRs beyond the queue: {self['hfield_mprs_unqueued']} (run one after another; "
                    "raise Options.hfield_mprs_per_pair)")
@@ -107,11 +113,12 @@ def collect(c, d, st) -> CollisionStats:
                            "dropped_pairs_per_world": [], "nonfinite_worlds": [],
                            "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
                            "dropped_contacts_per_world": [], "warm_start_misses": 0, "hfield_mprs_unqueued": 0,
-                           "hfield_ccd_as_mpr": 0})
+                           "hfield_ccd_as_mpr": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0})
   if st is None:
-    return CollisionStats({"path": "plugin", "pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
-                           "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
-                           "hfield_mprs_unqueued": 0, "hfield_ccd_as_mpr": 0})
+    return CollisionStats({"path": "plugin", "pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [],
+                           "nonfinite_worlds": [], "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
+                           "hfield_mprs_unqueued": 0, "hfield_ccd_as_mpr": 0, "deep_pairs": 0,
+                           "deep_pairs_unchecked": 0})
   from mjx_supportfield.heightfield import COUNT_CCD_AS_MPR  # the heightfield module builds kernels on import
   from mjx_supportfield.heightfield import COUNT_UNQUEUED
 
@@ -127,7 +134,14 @@ def collect(c, d, st) -> CollisionStats:
     # terrain MPRs that found the heightfield queue full and ran in their pair's thread
     "hfield_mprs_unqueued": int(st.hfield.count.numpy()[COUNT_UNQUEUED]),
     "hfield_ccd_as_mpr": int(st.hfield.count.numpy()[COUNT_CCD_AS_MPR]),
+    **_deep_pairs(st),
   })
+
+
+def _deep_pairs(st) -> dict:
+  """MPR answers sent to the deep-pair check, and those beyond its queue."""
+  pushed = int(st.deep.count.numpy()[0])
+  return {"deep_pairs": pushed, "deep_pairs_unchecked": max(0, pushed - st.deep.pair.shape[0])}
 
 
 def _dropped_contacts(c, d, st) -> dict:

@@ -110,6 +110,30 @@ def insert(
     s = (s + 1) & (nslot - 1)
 
 
+@wp.func
+def update(
+  slot_stamp: wp.array2d(dtype=int),
+  slot_key: wp.array2d(dtype=int),
+  slot_value: wp.array2d(dtype=wp.vec4),
+  now: int,
+  worldid: int,
+  key: int,
+  value: wp.vec4,
+):
+  """Replaces the (normal, depth) of ``key`` that this call's ``insert`` stored (a later stage
+  corrected it); nothing when the table had no room for it."""
+  nslot = slot_key.shape[1]
+  s = _home(key, nslot)
+  for _ in range(nslot):
+    t = slot_stamp[worldid, s]
+    if t <= now - 2:  # a slot insert found free: the key was stored before it or not at all
+      return
+    if t == now and slot_key[worldid, s] == key:
+      slot_value[worldid, s] = value
+      return
+    s = (s + 1) & (nslot - 1)
+
+
 @wp.kernel
 def forget_worlds(reset: wp.array(dtype=bool), sap_init: wp.array(dtype=int), slot_stamp: wp.array2d(dtype=int)):
   """Drops the history of the worlds ``reset`` marks: their cached normals and their saved

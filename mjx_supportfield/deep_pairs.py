@@ -1,0 +1,416 @@
+"""Deep-pair check: MPR's deep answers checked against the faces of both shapes, after the
+convex narrow phase and before the multi-contact pass.
+
+MPR answers where the ray from its interior point through the origin leaves A - B, then reruns
+along the normal it found. On a deep polytope pair A - B has several faces that the origin
+projects into, and MPR can settle on one that is not the nearest: a dodecahedron sunk into a
+tetrahedron came out 2.95 mm deep along one of its own faces, 59 deg from the penetration
+direction, where a face of the tetrahedron gives 2.11 mm. A polytope pair's penetration
+direction is a face normal of either shape or a cross product of their edges: the check scans
+every face normal of both shapes, walks from the best of them (and from MPR's normal) over the
+crosses of the edges at the support points (on small hulls tries every edge pair), and reruns MPR
+along the direction of least overlap (its refinement settles on that face of A - B).
+
+The scan reads every hull face, too heavy for the convex kernel's registers; only answers the
+convex kernel finds suspicious (``narrowphase.suspect_deep``: deeper than ``DEEP_GATE`` x the
+smaller shape's bounding radius, with a face on either shape) come here, through a queue of
+``DEEP_PAIRS_PER_WORLD`` x nworld rows. Pairs beyond it keep MPR's answer, counted
+(``stats(d)["deep_pairs_unchecked"]``).
+
+This module owns the queue (``Buffers``, ``make_buffers``), its kernel (``deep_pair_kernel``)
+and the host entry, ``launch``. A checked pair leaves as the convex kernel would have left it:
+queued for multi-contact (``narrowphase.Buffers``' patch queue, so its manifold follows the
+corrected normal) or written as one contact; its warm-start normal is corrected too.
+"""
+
+import dataclasses
+
+import warp as wp
+from mujoco_warp._src.collision_core import contact_params
+from mujoco_warp._src.types import GeomType
+from mujoco_warp._src.types import vec5
+
+from mjx_supportfield import warmstart
+from mjx_supportfield.contact_quota import ContactQuota
+from mjx_supportfield.contact_quota import contact_outputs
+from mjx_supportfield.mpr import BEHIND
+from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import behind_origin
+from mjx_supportfield.mpr import mpr_refined_from
+from mjx_supportfield.multicontact import Patch
+from mjx_supportfield.narrowphase import GRID_THREADS
+from mjx_supportfield.narrowphase import HEAVY_REGISTERS
+from mjx_supportfield.narrowphase import wants_patch
+from mjx_supportfield.narrowphase import write_pair_contacts
+from mjx_supportfield.shapes import posed_pair
+from mjx_supportfield.support import hull_point
+from mjx_supportfield.support import mesh_support_index
+from mjx_supportfield.support import support_world
+from mjx_supportfield.types import FAR
+from mjx_supportfield.types import SUPPORT_MODE_ID
+from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import Shape
+
+wp.set_module_options({"enable_backward": False})
+
+# queue rows per world (pooled over the worlds): a robot whose link meshes overlap at rest has
+# tens of deep answers a world; a pair beyond the queue only keeps MPR's answer (counted)
+DEEP_PAIRS_PER_WORLD = 64
+# a direction must overlap less than this fraction of the overlap along MPR's normal to be worth
+# an MPR: one that ties with MPR's own face (float32 rounding apart) would only rerun the same answer
+MIN_GAIN = 1.0e-4
+EDGE_ROUNDS = 4  # steps of the walk over edge-edge directions (_descend_edges)
+# pairs with at most this many edge pairs (a box has 3 edge directions) also try every one: two
+# support queries each
+EDGE_PAIR_BUDGET = 1024
+
+
+@dataclasses.dataclass
+class Buffers:
+  """The queue of suspicious deep answers that the convex kernel fills."""
+
+  count: wp.array  # (1,) answers pushed, those beyond the queue's rows included
+  pair: wp.array  # indices into the pair list
+  result: wp.array  # MPR's normal (xyz) and depth (w), margin band included
+  pos: wp.array  # MPR's point
+
+
+def make_buffers(nworld: int, capacity: int) -> Buffers:
+  """The queue for ``nworld`` worlds of ``capacity`` broad-phase pairs in all."""
+  rows = max(1, min(capacity, nworld * DEEP_PAIRS_PER_WORLD))
+  return Buffers(count=wp.zeros(1, dtype=int), pair=wp.zeros(rows, dtype=int), result=wp.zeros(rows, dtype=wp.vec4),
+                 pos=wp.zeros(rows, dtype=wp.vec3))
+
+
+@wp.func
+def overlap_along(a: Shape, b: Shape, ms: MeshSupport, mode: int, u: wp.vec3) -> float:
+  """How far A and B overlap along unit direction u (from A to B): A's support minus B's."""
+  return wp.dot(support_world(a, ms, u, mode) - support_world(b, ms, -u, mode), u)
+
+
+@wp.func
+def _shallower(a: Shape, b: Shape, ms: MeshSupport, mode: int, u: wp.vec3, best: wp.vec4) -> wp.vec4:
+  """best (a direction from A to B and the overlap of A and B along it), or u with its overlap
+  when that is smaller."""
+  h = overlap_along(a, b, ms, mode, u)
+  if h < best[3]:
+    return wp.vec4(u[0], u[1], u[2], h)
+  return best
+
+
+@wp.func
+def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, sign: float, best: wp.vec4) -> wp.vec4:
+  """best improved by the outward face normals (times sign: every direction points from A to B)
+  of s, A or B: a mesh's hull faces, a box's six, a cylinder's two ends. Curved sides have no
+  face: there MPR's refinement along the normal already walks to the nearest point."""
+  if s.gtype == GeomType.MESH:
+    adr = ms.plane_adr[s.mesh]
+    for f in range(ms.plane_num[s.mesh]):
+      plane = ms.plane[adr + f]
+      best = _shallower(a, b, ms, mode, sign * (s.rot @ wp.vec3(plane[0], plane[1], plane[2])), best)
+  elif s.gtype == GeomType.BOX or s.gtype == GeomType.CYLINDER:
+    first = wp.where(s.gtype == GeomType.BOX, 0, 2)
+    for c in range(first, 3):
+      axis = wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
+      best = _shallower(a, b, ms, mode, sign * axis, best)
+      best = _shallower(a, b, ms, mode, -sign * axis, best)
+  return best
+
+
+@wp.func
+def _support_vertex(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> int:
+  """Local hull index of a mesh shape's support vertex for world direction d; -1 for other types."""
+  if s.gtype == GeomType.MESH:
+    return mesh_support_index(ms, s.mesh, wp.transpose(s.rot) @ d, mode)
+  return -1
+
+
+@wp.func
+def _edge_count(s: Shape, ms: MeshSupport, vertex: int) -> int:
+  """Edges of s at its support point: a box's 3 directions, a mesh's hull edges at its support
+  vertex; none for curved shapes."""
+  if s.gtype == GeomType.BOX:
+    return 3
+  if s.gtype == GeomType.MESH:
+    return ms.nbr_num[ms.hull_adr[s.mesh] + vertex]
+  return 0
+
+
+@wp.func
+def _edge(s: Shape, ms: MeshSupport, vertex: int, k: int) -> wp.vec3:
+  """The k-th edge (world direction, not unit) of s at its support point (see _edge_count)."""
+  if s.gtype == GeomType.BOX:
+    return wp.vec3(s.rot[0, k], s.rot[1, k], s.rot[2, k])
+  other = ms.nbr[ms.nbr_adr[ms.hull_adr[s.mesh] + vertex] + k]
+  return s.rot @ (hull_point(ms, s.mesh, other) - hull_point(ms, s.mesh, vertex))
+
+
+@wp.func
+def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+  """best improved by the cross products of the edges of A and B at their support points along
+  best's direction (each turned to point from A to B)."""
+  u = wp.vec3(best[0], best[1], best[2])
+  va = _support_vertex(a, ms, u, mode)
+  vb = _support_vertex(b, ms, -u, mode)
+  nb = _edge_count(b, ms, vb)
+  for i in range(_edge_count(a, ms, va)):
+    ea = _edge(a, ms, va, i)
+    for j in range(nb):
+      best = _cross_direction(a, b, ms, mode, ea, _edge(b, ms, vb, j), u, best)
+  return best
+
+
+@wp.func
+def _cross_direction(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, ea: wp.vec3, eb: wp.vec3, u: wp.vec3, best: wp.vec4
+) -> wp.vec4:
+  """best improved by the cross product of edges ea (of A) and eb (of B), turned to the side of u."""
+  c = wp.cross(ea, eb)
+  if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
+    c = wp.normalize(c)
+    best = _shallower(a, b, ms, mode, wp.where(wp.dot(c, u) < 0.0, -c, c), best)
+  return best
+
+
+@wp.func
+def _edge_ends(s: Shape, ms: MeshSupport) -> int:
+  """Edge ends of s: a mesh's hull edges counted at both ends; a box's 3 directions; 0 else."""
+  if s.gtype == GeomType.BOX:
+    return 3
+  total = int(0)
+  if s.gtype == GeomType.MESH:
+    for v in range(ms.hull_num[s.mesh]):
+      total += ms.nbr_num[ms.hull_adr[s.mesh] + v]
+  return total
+
+
+@wp.func
+def _crosses_with_edge(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, ea: wp.vec3, u: wp.vec3, best: wp.vec4
+) -> wp.vec4:
+  """best improved by the crosses of edge ea of A with every edge of B (each once)."""
+  if b.gtype == GeomType.BOX:
+    for k in range(3):
+      best = _cross_direction(a, b, ms, mode, ea, wp.vec3(b.rot[0, k], b.rot[1, k], b.rot[2, k]), u, best)
+  elif b.gtype == GeomType.MESH:
+    for v in range(ms.hull_num[b.mesh]):
+      g = ms.hull_adr[b.mesh] + v
+      for k in range(ms.nbr_num[g]):
+        other = ms.nbr[ms.nbr_adr[g] + k]
+        if other > v:
+          eb = b.rot @ (hull_point(ms, b.mesh, other) - hull_point(ms, b.mesh, v))
+          best = _cross_direction(a, b, ms, mode, ea, eb, u, best)
+  return best
+
+
+@wp.func
+def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+  """best improved by the crosses of every edge of A with every edge of B (turned to the side of
+  best's direction)."""
+  u = wp.vec3(best[0], best[1], best[2])
+  if a.gtype == GeomType.BOX:
+    for k in range(3):
+      best = _crosses_with_edge(a, b, ms, mode, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), u, best)
+  elif a.gtype == GeomType.MESH:
+    for v in range(ms.hull_num[a.mesh]):
+      g = ms.hull_adr[a.mesh] + v
+      for k in range(ms.nbr_num[g]):
+        other = ms.nbr[ms.nbr_adr[g] + k]
+        if other > v:
+          ea = a.rot @ (hull_point(ms, a.mesh, other) - hull_point(ms, a.mesh, v))
+          best = _crosses_with_edge(a, b, ms, mode, ea, u, best)
+  return best
+
+
+@wp.func
+def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+  """best improved by walking over edge-edge directions: the crosses of the edges at the support
+  points, again from the better one found, up to EDGE_ROUNDS times. A polytope pair's
+  penetration direction need not be a face normal of either shape; where it is an edge-edge
+  direction, its edges lie at the support points of directions near it."""
+  for _ in range(EDGE_ROUNDS):
+    start = best[3]
+    best = _edge_crosses(a, b, ms, mode, best)
+    if not (best[3] < start):
+      break
+  return best
+
+
+@wp.func
+def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec4:
+  """Of ``normal``, the face normals of A and B and the edge-edge directions found near the best
+  of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
+  the one along which A and B overlap least, and that overlap (xyz, w)."""
+  start = wp.vec4(normal[0], normal[1], normal[2], FAR)
+  start = _shallower(a, b, ms, mode, normal, start)
+  best = _face_normals(a, a, b, ms, mode, 1.0, start)
+  best = _descend_edges(a, b, ms, mode, _face_normals(b, a, b, ms, mode, -1.0, best))
+  near = _descend_edges(a, b, ms, mode, start)
+  if near[3] < best[3]:
+    best = near
+  # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
+  # where it starts)
+  if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
+    best = _all_edge_crosses(a, b, ms, mode, best)
+  return best
+
+
+@wp.func
+def checked_answer(
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, res: MprResult, scale: float, tol: float, iterations: int,
+  refine: int,
+) -> MprResult:
+  """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
+  (least_overlap) when that comes out shallower."""
+  along = overlap_along(a, b, ms, mode, res.normal)
+  least = least_overlap(a, b, ms, mode, res.normal)
+  if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
+    return res
+  u = wp.vec3(least[0], least[1], least[2])
+  r = mpr_refined_from(a, b, ms, mode, behind_origin(a, b, ms, mode, u, least[3], scale, BEHIND), scale, tol,
+                       iterations, refine, BEHIND)
+  if r.hit != 0 and r.depth < res.depth - tol * scale:
+    return r
+  return res
+
+
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
+def deep_pair_kernel(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_condim: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_priority: wp.array(dtype=int),
+  geom_solmix: wp.array2d(dtype=float),
+  geom_solref: wp.array2d(dtype=wp.vec2),
+  geom_solimp: wp.array2d(dtype=vec5),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  geom_rbound: wp.array2d(dtype=float),
+  geom_friction: wp.array2d(dtype=wp.vec3),
+  geom_margin: wp.array2d(dtype=float),
+  geom_gap: wp.array2d(dtype=float),
+  geom_adhesion: wp.array2d(dtype=float),
+  pair_dim: wp.array(dtype=int),
+  pair_solref: wp.array2d(dtype=wp.vec2),
+  pair_solreffriction: wp.array2d(dtype=wp.vec2),
+  pair_solimp: wp.array2d(dtype=vec5),
+  pair_margin: wp.array2d(dtype=float),
+  pair_gap: wp.array2d(dtype=float),
+  pair_adhesion: wp.array2d(dtype=float),
+  pair_friction: wp.array2d(dtype=vec5),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  naconmax_in: int,
+  # In:
+  ms: MeshSupport,
+  support_mode: int,
+  tolerance: float,
+  iterations: int,
+  refine: int,
+  max_contacts: int,
+  mc_perturbation: float,
+  warm_start: int,
+  ws_stamp: wp.array(dtype=int),
+  ws_slot_stamp: wp.array2d(dtype=int),
+  ws_slot_key: wp.array2d(dtype=int),
+  deep_count: wp.array(dtype=int),
+  deep_pair: wp.array(dtype=int),
+  deep_result: wp.array(dtype=wp.vec4),
+  deep_pos: wp.array(dtype=wp.vec3),
+  pair_in: wp.array(dtype=wp.vec2i),
+  pairid_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  nthread: int,
+  quota: ContactQuota,
+  # Out:
+  ws_slot_value: wp.array2d(dtype=wp.vec4),
+  patch_count: wp.array(dtype=int),
+  patch_pair: wp.array(dtype=int),
+  patch_result: wp.array(dtype=wp.vec4),
+  patch_pos: wp.array(dtype=wp.vec3),
+  # Data out:
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """The deep answers the convex kernel queued, one thread a pair: each checked along the face
+  normals of both shapes (checked_answer), then queued for multi-contact or written as the
+  convex kernel does."""
+  tid = wp.tid()
+  for s in range(tid, wp.min(deep_count[0], deep_pair.shape[0]), nthread):
+    cid = deep_pair[s]
+    geoms = pair_in[cid]
+    worldid = pair_worldid_in[cid]
+    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
+      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
+      pair_friction, pair_in, pairid_in, cid, worldid,
+    )
+    band = wp.max(margin + gap, 0.0)
+    a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
+                             geoms, worldid)
+    res = MprResult()
+    res.hit = 1
+    queued = deep_result[s]
+    res.normal = wp.vec3(queued[0], queued[1], queued[2])
+    res.depth = queued[3]
+    res.pos = deep_pos[s]
+    res = checked_answer(a, b, ms, support_mode, res, scale, tolerance, iterations, refine)
+    value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+    if warm_start:
+      key = geoms[0] * geom_type.shape[0] + geoms[1]
+      warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[0], worldid, key, value)
+    if wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
+      slot = wp.atomic_add(patch_count, 0, 1)
+      patch_pair[slot] = cid
+      patch_result[slot] = value
+      patch_pos[slot] = res.pos
+      continue
+    extra = Patch()
+    extra.n = 0
+    write_pair_contacts(
+      res, extra, 0.0, 0.0, 1, band, naconmax_in, margin, gap, condim, friction, solref, solreffriction, solimp,
+      adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out, contact_frame_out,
+      contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
+      contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
+      contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+    )
+
+
+def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota: ContactQuota) -> None:
+  """The deep answers the MPR kernel queued, checked (``c``: the Collider; ``pairs``: the broad
+  phase's buffers; ``narrow``: the narrow phase's, whose multi-contact queue the checked pairs
+  join)."""
+  opt = c.options
+  if not c.mpr_types or opt.narrowphase == "gjk":
+    return
+  nthread = max(1, min(b.pair.shape[0], GRID_THREADS))
+  wp.launch(
+    deep_pair_kernel,
+    dim=nthread,
+    inputs=[
+      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
+      m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
+      m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, SUPPORT_MODE_ID[opt.support_mode],
+      opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine, opt.max_contacts_per_pair if opt.multi_contact else 1,
+      opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
+      b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
+    ],
+    outputs=[warm.slot_value, narrow.patch_count, narrow.patch_pair, narrow.patch_result, narrow.patch_pos]
+    + contact_outputs(d),
+  )

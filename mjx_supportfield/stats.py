@@ -101,19 +101,20 @@ class CollisionStats(dict):
     return f"CollisionStats({', '.join(f'{k}={v}' for k, v in totals.items())})"
 
 
+# every counter at rest: before the first collision, and those the stock path leaves untouched
+_NO_COUNTS = {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
+              "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
+              "hfield_mprs_unqueued": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0}
+
+
 def collect(c, d, st) -> CollisionStats:
   """The counters of the last collision on ``d`` from Collider ``c``'s per-Data state ``st`` (None
   before the first collision); reads the device."""
   if c.stock_path:
-    return CollisionStats({"path": "stock", "pairs": int(d.ncollision.numpy()[0]), "pairs_per_world": [],
-                           "dropped_pairs_per_world": [], "nonfinite_worlds": [],
-                           "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax),
-                           "dropped_contacts_per_world": [], "warm_start_misses": 0, "hfield_mprs_unqueued": 0,
-                           "deep_pairs": 0, "deep_pairs_unchecked": 0})
+    return CollisionStats({**_NO_COUNTS, "path": "stock", "pairs": int(d.ncollision.numpy()[0]),
+                           "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax)})
   if st is None:
-    return CollisionStats({"path": "plugin", "pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [],
-                           "nonfinite_worlds": [], "dropped_contacts": 0, "dropped_contacts_per_world": [],
-                           "warm_start_misses": 0, "hfield_mprs_unqueued": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0})
+    return CollisionStats({**_NO_COUNTS, "path": "plugin"})
   from mjx_supportfield.heightfield import COUNT_UNQUEUED  # the heightfield module builds kernels on import
 
   broad = st.broad

@@ -422,6 +422,6 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
       opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
       b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
     ],
-    outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result, narrow.patch_pos]
-    + contact_outputs(d),
+    outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
+             narrow.patch_pos] + contact_outputs(d),
   )

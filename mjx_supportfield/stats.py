@@ -119,8 +119,8 @@ def collect(c, d, st) -> CollisionStats:
   if st is None:
     return CollisionStats({"path": "plugin", "pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [],
                            "nonfinite_worlds": [], "dropped_contacts": 0, "dropped_contacts_per_world": [],
-                           "warm_start_misses": 0, "hfield_mprs_unqueued": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0,
-                           "deep_pairs_reused": 0})
+                           "warm_start_misses": 0, "hfield_mprs_unqueued": 0, "deep_pairs": 0,
+                           "deep_pairs_unchecked": 0, "deep_pairs_reused": 0})
   from mjx_supportfield.heightfield import COUNT_UNQUEUED  # the heightfield module builds kernels on import
 
   broad = st.broad

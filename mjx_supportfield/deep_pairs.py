@@ -17,6 +17,14 @@ smaller shape's bounding radius, with a face on either shape) come here, through
 ``DEEP_PAIRS_PER_WORLD`` x nworld rows. Pairs beyond it keep MPR's answer, counted
 (``stats(d)["deep_pairs_unchecked"]``).
 
+A pair that stays deep call after call (robot links whose meshes overlap at rest) is not checked
+every call: the check stamps the pair's warm-start entry (warmstart.py's ``slot_checked``), and
+while MPR, warm-started from the normal the check left, lands within a few degrees of it, the
+convex kernel keeps that verdict (narrowphase.deep_verdict_holds, counted as
+``stats(d)["deep_pairs_reused"]``) and rechecks the pair only every ``DEEP_RECHECK_CALLS`` calls,
+at a phase of its own: MPR warm-started on a face stays on it, so only a new check finds that
+another face became the nearest.
+
 This module owns the queue (``Buffers``, ``make_buffers``), its kernel (``deep_pair_kernel``)
 and the host entry, ``launch``. A checked pair leaves as the convex kernel would have left it:
 queued for multi-contact (``narrowphase.Buffers``' patch queue, so its manifold follows the
@@ -69,7 +77,7 @@ EDGE_PAIR_BUDGET = 1024
 class Buffers:
   """The queue of suspicious deep answers that the convex kernel fills."""
 
-  count: wp.array  # (1,) answers pushed, those beyond the queue's rows included
+  count: wp.array  # (2,) answers pushed (those beyond the queue's rows included), answers that kept the verdict
   pair: wp.array  # indices into the pair list
   result: wp.array  # MPR's normal (xyz) and depth (w), margin band included
   pos: wp.array  # MPR's point
@@ -78,7 +86,7 @@ class Buffers:
 def make_buffers(nworld: int, capacity: int) -> Buffers:
   """The queue for ``nworld`` worlds of ``capacity`` broad-phase pairs in all."""
   rows = max(1, min(capacity, nworld * DEEP_PAIRS_PER_WORLD))
-  return Buffers(count=wp.zeros(1, dtype=int), pair=wp.zeros(rows, dtype=int), result=wp.zeros(rows, dtype=wp.vec4),
+  return Buffers(count=wp.zeros(2, dtype=int), pair=wp.zeros(rows, dtype=int), result=wp.zeros(rows, dtype=wp.vec4),
                  pos=wp.zeros(rows, dtype=wp.vec3))
 
 
@@ -325,6 +333,7 @@ def deep_pair_kernel(
   quota: ContactQuota,
   # Out:
   ws_slot_value: wp.array2d(dtype=wp.vec4),
+  ws_slot_checked: wp.array2d(dtype=int),
   patch_count: wp.array(dtype=int),
   patch_pair: wp.array(dtype=int),
   patch_result: wp.array(dtype=wp.vec4),
@@ -373,7 +382,9 @@ def deep_pair_kernel(
     value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
     if warm_start:
       key = geoms[0] * geom_type.shape[0] + geoms[1]
-      warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[0], worldid, key, value)
+      stored = warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[0], worldid, key, value)
+      if stored >= 0:
+        ws_slot_checked[worldid, stored] = ws_stamp[0]
     if wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
       slot = wp.atomic_add(patch_count, 0, 1)
       patch_pair[slot] = cid
@@ -411,6 +422,6 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
       opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
       b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
     ],
-    outputs=[warm.slot_value, narrow.patch_count, narrow.patch_pair, narrow.patch_result, narrow.patch_pos]
-    + contact_outputs(d),
+    outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
+             narrow.patch_pos] + contact_outputs(d),
   )

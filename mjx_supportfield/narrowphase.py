@@ -70,6 +70,15 @@ TILT_PAIRS_PER_WORLD = 32
 # deep_pairs.py's check: resting contacts sink a small fraction of that, and on a deep polytope
 # pair MPR can settle on a face of A - B that is not the nearest
 DEEP_GATE = 0.1
+# a deep pair whose warm-started MPR answer stays within this cosine of the previous call's normal
+# (the check's own answer when it ran) keeps the check's verdict instead of a new check: a robot
+# whose link meshes overlap at rest would otherwise scan every hull face of them each call
+DEEP_REUSE_COS = 0.999  # ~2.6 deg
+# ... but no more than this many calls in a row: a pair sliding along a face that is no longer the
+# nearest keeps MPR's answer near the old normal, and only a new check finds the other face.
+# Read at each launch (a kernel input); 1 checks every deep pair every call.
+DEEP_RECHECK_CALLS = 8
+_PHASE_MIX = wp.constant(wp.uint32(2654435769))
 
 
 @functools.lru_cache(maxsize=None)
@@ -335,6 +344,23 @@ def suspect_deep(type1: int, type2: int, depth: float, rbound1: float, rbound2: 
 
 
 @wp.func
+def deep_verdict_holds(last: wp.vec4, checked: int, normal: wp.vec3, now: int, worldid: int, key: int,
+                       period: int) -> bool:
+  """Whether a deep pair skips the check this call and keeps MPR's answer ``normal``: its MPR
+  was warm-started from ``last`` (the previous call's normal, corrected by the check when that
+  ran) and stayed within DEEP_REUSE_COS of it, the check last ran (call ``checked``) fewer than
+  ``period`` calls ago, and this is not the pair's recheck call. Each pair rechecks every
+  ``period`` calls at a phase of its own (a hash of world and geom pair), so that the checks of
+  pairs that went deep together spread over the calls instead of all landing in one."""
+  if last[3] <= 0.0 or now - checked >= period:
+    return False
+  phase = int((wp.uint32(key) * _PHASE_MIX + wp.uint32(worldid)) * _PHASE_MIX >> wp.uint32(8)) % period
+  if (now + phase) % period == 0:
+    return False
+  return wp.dot(normal, wp.vec3(last[0], last[1], last[2])) >= DEEP_REUSE_COS
+
+
+@wp.func
 def wants_patch(
   geom_type: wp.array(dtype=int), geoms: wp.vec2i, a: Shape, b: Shape, ms: MeshSupport, res: MprResult,
   max_contacts: int, mc_perturbation: float,
@@ -465,7 +491,9 @@ def convex_kernel(use_gjk: bool):
     ws_slot_stamp: wp.array2d(dtype=int),
     ws_slot_key: wp.array2d(dtype=int),
     ws_slot_value: wp.array2d(dtype=wp.vec4),
+    ws_slot_checked: wp.array2d(dtype=int),
     ws_misses: wp.array(dtype=int),
+    deep_recheck: int,
     queue_count: wp.array(dtype=int),
     queue_pair: wp.array2d(dtype=int),
     pair_in: wp.array(dtype=wp.vec2i),
@@ -545,12 +573,14 @@ def convex_kernel(use_gjk: bool):
       key = g1 * geom_type.shape[0] + g2
       res = MprResult()
       res.hit = 0
+      last = wp.vec4(0.0)
+      checked = int(warmstart.NEVER)
       if wp.static(use_gjk):
         res = gjk_epa(a, b, ms, support_mode, scale, tolerance, iterations)
       else:
-        last = wp.vec4(0.0)
         if warm_start:
           last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
+          checked = warmstart.last_checked(ws_slot_stamp, ws_slot_key, ws_slot_checked, now, worldid, key)
         # one MPR call site, in a loop, keeps the kernel small: warm first when the pair has a
         # normal from the previous call, then cold if that found nothing
         for attempt in range(2):
@@ -580,18 +610,23 @@ def convex_kernel(use_gjk: bool):
           extra.n = -1  # a fallback contact is not perturbed
       if warm_start and not wp.static(use_gjk):
         value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
-        warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
+        stored = warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
+        if stored >= 0:
+          ws_slot_checked[worldid, stored] = checked
       if not wp.static(use_gjk) and extra.n == 0 and suspect_deep(
         geom_type[g1], geom_type[g2], res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2]
       ):
-        # checked by deep_pairs.py, which then queues or writes it as below; beyond the queue's
-        # rows it keeps MPR's answer (counted)
-        slot = wp.atomic_add(deep_count, 0, 1)
-        if slot < deep_pair.shape[0]:
-          deep_pair[slot] = cid
-          deep_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
-          deep_pos[slot] = res.pos
-          continue
+        if warm_start and deep_verdict_holds(last, checked, res.normal, now, worldid, key, deep_recheck):
+          wp.atomic_add(deep_count, 1, 1)  # counted apart from the queue: the pair goes on below
+        else:
+          # checked by deep_pairs.py, which then queues or writes it as below; beyond the
+          # queue's rows it keeps MPR's answer (counted)
+          slot = wp.atomic_add(deep_count, 0, 1)
+          if slot < deep_pair.shape[0]:
+            deep_pair[slot] = cid
+            deep_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+            deep_pos[slot] = res.pos
+            continue
       if extra.n == 0 and wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
         # queued for face_pair_kernel, which leaves the pairs without a face pair to the tilts
         slot = wp.atomic_add(patch_count, 0, 1)
@@ -707,7 +742,8 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
         SUPPORT_MODE_ID[opt.support_mode], opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
         opt.max_contacts_per_pair if opt.multi_contact else 1, opt.mc_perturbation,
         c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
-        warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.misses,
+        warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,
+        DEEP_RECHECK_CALLS,
       ] + queue_inputs + [nthread, quota],
       outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos, deep.count, deep.pair, deep.result,
                deep.pos] + contact_outputs(d),

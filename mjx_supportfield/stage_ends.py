@@ -55,6 +55,7 @@ def start_collision(
   tilt_pair_count[0] = 0
   tilt_count[0] = 0
   deep_count[0] = 0
+  deep_count[1] = 0
   for q in range(queue_count.shape[0]):
     queue_count[q] = 0
   for k in range(hfield_count.shape[0]):

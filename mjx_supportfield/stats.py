@@ -22,6 +22,9 @@ class CollisionStats(dict):
     deep_pairs: MPR answers deep enough to be checked along the shapes' faces (deep_pairs.py),
       those beyond its queue included.
     deep_pairs_unchecked: of those, the ones beyond the queue: they kept MPR's answer.
+    deep_pairs_reused: deep answers that kept the verdict of the pair's last check instead of a
+      new one (deep_pairs.py), not counted in deep_pairs; the check ran on deep_pairs minus
+      deep_pairs_unchecked.
     path: "plugin", or "stock" where MuJoCo Warp's own collision stage ran
       (``Options.stock_for_analytic_models``); then ``pairs`` is its pair count, the per-world
       lists are empty and the plugin's other counters 0.
@@ -76,6 +79,9 @@ class CollisionStats(dict):
     if self.get("deep_pairs_unchecked"):
       lines.append(f"deep pairs beyond the check's queue: {self['deep_pairs_unchecked']} of {self['deep_pairs']} "
                    "(they kept MPR's answer)")
+    if self.get("deep_pairs_reused"):
+      lines.append(f"deep pairs that kept their last check's verdict: {self['deep_pairs_reused']} (checked: "
+                   f"{self['deep_pairs'] - self['deep_pairs_unchecked']})")
     if self["hfield_mprs_unqueued"]:
       lines.append(f"heightfield MPRs beyond the queue: {self['hfield_mprs_unqueued']} (run one after another; "
                    "raise Options.hfield_mprs_per_pair)")
@@ -104,7 +110,8 @@ class CollisionStats(dict):
 # every counter at rest: before the first collision, and those the stock path leaves untouched
 _NO_COUNTS = {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
               "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
-              "hfield_mprs_unqueued": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0}
+              "hfield_mprs_unqueued": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0,
+              "deep_pairs_reused": 0}
 
 
 def collect(c, d, st) -> CollisionStats:
@@ -133,9 +140,11 @@ def collect(c, d, st) -> CollisionStats:
 
 
 def _deep_pairs(st) -> dict:
-  """MPR answers sent to the deep-pair check, and those beyond its queue."""
-  pushed = int(st.deep.count.numpy()[0])
-  return {"deep_pairs": pushed, "deep_pairs_unchecked": max(0, pushed - st.deep.pair.shape[0])}
+  """MPR answers sent to the deep-pair check, those beyond its queue, and those that kept their
+  last check's verdict."""
+  pushed, reused = (int(x) for x in st.deep.count.numpy()[:2])
+  return {"deep_pairs": pushed, "deep_pairs_unchecked": max(0, pushed - st.deep.pair.shape[0]),
+          "deep_pairs_reused": reused}
 
 
 def _dropped_contacts(c, d, st) -> dict:

@@ -9,6 +9,11 @@ stamp is two or more calls old; a lookup walks past slots of the last two calls 
 one and stops at an older (or never used) slot, which cannot lie before the entry it looks for.
 A full table only means a cold start for the pairs that found no slot.
 
+Each entry also carries the call that last ran the deep-pair check on the pair
+(``slot_checked``, deep_pairs.py), handed from the previous call's entry to this call's
+(``last_checked``, then ``insert``'s slot), so that a persistent deep pair is checked only now
+and then (narrowphase.deep_verdict_holds).
+
 This module owns the cache (``WarmCache``, ``make_cache``), its device functions, and the reset
 of chosen worlds' history (``forget``, with the broad phase's sweep order).
 """
@@ -33,6 +38,7 @@ class WarmCache:
   slot_stamp: wp.array2d  # (nworld, nslot)
   slot_key: wp.array2d
   slot_value: wp.array2d  # vec4: normal, depth
+  slot_checked: wp.array2d  # the call that last ran the deep-pair check on the entry's pair (NEVER: none)
   misses: wp.array  # (1,) warm-started MPRs of the current call that missed and ran cold again
 
 
@@ -48,6 +54,7 @@ def make_cache(nworld: int, nslot: int) -> WarmCache:
     slot_stamp=wp.full((nworld, nslot), NEVER, dtype=int),
     slot_key=wp.zeros((nworld, nslot), dtype=int),
     slot_value=wp.zeros((nworld, nslot), dtype=wp.vec4),
+    slot_checked=wp.full((nworld, nslot), NEVER, dtype=int),
     misses=wp.zeros(1, dtype=int),
   )
 
@@ -66,6 +73,22 @@ def _home(key: int, nslot: int) -> int:
 
 
 @wp.func
+def _previous_slot(slot_stamp: wp.array2d(dtype=int), slot_key: wp.array2d(dtype=int), now: int, worldid: int,
+                   key: int) -> int:
+  """The slot of ``key``'s entry of the previous call; -1 when there is none."""
+  nslot = slot_key.shape[1]
+  s = _home(key, nslot)
+  for _ in range(nslot):
+    t = slot_stamp[worldid, s]
+    if t < now - 2:
+      break
+    if t == now - 1 and slot_key[worldid, s] == key:
+      return s
+    s = (s + 1) & (nslot - 1)
+  return -1
+
+
+@wp.func
 def lookup(
   slot_stamp: wp.array2d(dtype=int),
   slot_key: wp.array2d(dtype=int),
@@ -75,16 +98,23 @@ def lookup(
   key: int,
 ) -> wp.vec4:
   """The previous call's (normal, depth) of ``key``; depth 0 when there is none."""
-  nslot = slot_key.shape[1]
-  s = _home(key, nslot)
-  for _ in range(nslot):
-    t = slot_stamp[worldid, s]
-    if t < now - 2:
-      break
-    if t == now - 1 and slot_key[worldid, s] == key:
-      return slot_value[worldid, s]
-    s = (s + 1) & (nslot - 1)
-  return wp.vec4(0.0)
+  s = _previous_slot(slot_stamp, slot_key, now, worldid, key)
+  if s < 0:
+    return wp.vec4(0.0)
+  return slot_value[worldid, s]
+
+
+@wp.func
+def last_checked(
+  slot_stamp: wp.array2d(dtype=int), slot_key: wp.array2d(dtype=int), slot_checked: wp.array2d(dtype=int), now: int,
+  worldid: int, key: int,
+) -> int:
+  """The call that last ran the deep-pair check on ``key``, as the previous call's entry has it;
+  NEVER when there is no entry."""
+  s = _previous_slot(slot_stamp, slot_key, now, worldid, key)
+  if s < 0:
+    return NEVER
+  return slot_checked[worldid, s]
 
 
 @wp.func
@@ -96,8 +126,9 @@ def insert(
   worldid: int,
   key: int,
   value: wp.vec4,
-):
-  """Stores this call's (normal, depth) of ``key``; silently skipped when the table is full."""
+) -> int:
+  """Stores this call's (normal, depth) of ``key``; returns its slot, -1 (nothing stored) when
+  the table is full."""
   nslot = slot_key.shape[1]
   s = _home(key, nslot)
   for _ in range(nslot):
@@ -106,8 +137,9 @@ def insert(
       if wp.atomic_cas(slot_stamp, worldid, s, t, now) == t:
         slot_key[worldid, s] = key
         slot_value[worldid, s] = value
-        return
+        return s
     s = (s + 1) & (nslot - 1)
+  return -1
 
 
 @wp.func
@@ -119,19 +151,20 @@ def update(
   worldid: int,
   key: int,
   value: wp.vec4,
-):
+) -> int:
   """Replaces the (normal, depth) of ``key`` that this call's ``insert`` stored (a later stage
-  corrected it); nothing when the table had no room for it."""
+  corrected it); returns its slot, -1 (nothing replaced) when the table had no room for it."""
   nslot = slot_key.shape[1]
   s = _home(key, nslot)
   for _ in range(nslot):
     t = slot_stamp[worldid, s]
     if t <= now - 2:  # a slot insert found free: the key was stored before it or not at all
-      return
+      return -1
     if t == now and slot_key[worldid, s] == key:
       slot_value[worldid, s] = value
-      return
+      return s
     s = (s + 1) & (nslot - 1)
+  return -1
 
 
 @wp.kernel

@@ -20,6 +20,7 @@ from conftest import angle_deg
 from conftest import contacts
 from conftest import load
 from conftest import random_quat
+from conftest import set_qpos
 from mjx_supportfield import exact
 
 REPRO = os.path.join(ROOT, "tests", "data", "repro")
@@ -212,3 +213,65 @@ def test_deep_hull_box_edge_edge():
   xpos, xmat = exact.geom_poses(mjm, qpos[4])
   mine, epa = (overlap(mjm, g1, g2, xpos, xmat, n) for n in (normal, normals["gjk"][1]))
   assert mine <= epa + OVERLAP_TOL, f"overlap {mine * 1e3:.3f} mm along the normal, EPA's {epa * 1e3:.3f} mm"
+
+
+# --- persistent deep pairs: the check's verdict reused, rechecked every few calls -----------------
+
+OCTAHEDRA = """
+<mujoco>
+  <option gravity="0 0 0"/>
+  <asset>
+    <mesh name="big" vertex=".06 0 0  -.06 0 0  0 .06 0  0 -.06 0  0 0 .06  0 0 -.06"/>
+    <mesh name="small" vertex=".01 0 0  -.01 0 0  0 .01 0  0 -.01 0  0 0 .01  0 0 -.01"/>
+  </asset>
+  <worldbody>
+    <geom name="big" type="mesh" mesh="big"/>
+    <body name="small"><freejoint/><geom name="small" type="mesh" mesh="small"/></body>
+  </worldbody>
+</mujoco>
+"""
+SUNK = 0.006  # the small octahedron's depth under the big one's (1, 1, 1) face
+SLIDE_Z = (0.004, 0.002, 0.0, -0.001, -0.002, -0.003)  # its centre's z, kept at that depth
+
+
+def _slide(calls: int):
+  """(normal from the big octahedron to the small one, depth) of the deepest contact after each
+  call: the small octahedron SUNK under the big one's (1, 1, 1) face, slid along it over the
+  edge with the (1, 1, -1) face (z from + to -), then held ``calls`` calls at z = -3 mm, where
+  the (1, 1, -1) face is the nearer way out (2.54 mm against 6). Its local axes are no face
+  normals, so MPR's own axis check does not find the other face."""
+  sim = load(OCTAHEDRA)
+  collider = sf.install(sim.mjm, sim.m)
+  qpos = sim.mjm.qpos0.copy()
+  along = 0.07 - SUNK * np.sqrt(3)  # x + y + z of the centre: the depth under the (1, 1, 1) face
+  out, reused = [], 0
+  for z in SLIDE_Z + (SLIDE_Z[-1],) * calls:
+    qpos[:3] = ((along - z) / 2, (along - z) / 2, z)
+    set_qpos(sim, qpos)
+    sf.collision(sim.m, sim.d)
+    c = contacts(sim.d, 0)
+    row = int(np.argmin(c.dist))
+    sign = 1 if tuple(c.geom[row]) == (0, 1) else -1
+    out.append((sign * c.normal[row], -float(c.dist[row])))
+    reused += collider.stats(sim.d)["deep_pairs_reused"]
+  return out, reused
+
+
+def test_deep_pair_rechecked_when_nearest_face_changes(monkeypatch):
+  """The small octahedron slides under the big one's face until another face is the nearer way
+  out. MPR warm-started from the first face's normal stays on it (its ray still leaves through
+  that face), so it agrees with the check's last verdict and the check is skipped; the pair is
+  rechecked within DEEP_RECHECK_CALLS calls and then follows the nearer face. With the recheck
+  pushed out of reach the answer stays on the first face, 6 mm deep instead of 2.54."""
+  from mjx_supportfield import narrowphase
+
+  first, second = np.array((1, 1, 1)) / np.sqrt(3), np.array((1, 1, -1)) / np.sqrt(3)
+  period = narrowphase.DEEP_RECHECK_CALLS
+  normals, reused = _slide(period)
+  assert angle_deg(normals[0][0], first) < 1.0
+  assert reused > 0  # the verdict was kept on some calls
+  assert angle_deg(normals[-1][0], second) < 1.0, f"normal {normals[-1][0]} {period} calls after the slide"
+  assert abs(normals[-1][1] - (SUNK + 2 * SLIDE_Z[-1] / np.sqrt(3))) < 1e-4
+  monkeypatch.setattr(narrowphase, "DEEP_RECHECK_CALLS", 1 << 20)
+  stuck, _ = _slide(period)
+  assert angle_deg(stuck[-1][0], first) < 1.0, "without the recheck MPR should stay on the first face"

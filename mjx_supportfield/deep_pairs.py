@@ -15,7 +15,11 @@ The scan reads every hull face, too heavy for the convex kernel's registers; onl
 convex kernel finds suspicious (``narrowphase.suspect_deep``: deeper than ``DEEP_GATE`` x the
 smaller shape's bounding radius, with a face on either shape) come here, through a queue of
 ``DEEP_PAIRS_PER_WORLD`` x nworld rows. Pairs beyond it keep MPR's answer, counted
-(``stats(d)["deep_pairs_unchecked"]``).
+(``stats(d)["deep_pairs_unchecked"]``). A block of ``DEEP_LANES`` threads checks one pair: a
+robot's link hulls have hundreds of faces, a serial loop too long for one thread when every
+world has tens of deep pairs; the lanes split the faces and the edge crosses and agree on the
+least overlap through a tile reduction. On the CPU a block is one thread, which scans in the
+serial order.
 
 A pair that stays deep call after call (robot links whose meshes overlap at rest) is not checked
 every call: the check stamps the pair's warm-start entry (warmstart.py's ``slot_checked``), and

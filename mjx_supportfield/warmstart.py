@@ -73,19 +73,29 @@ def _home(key: int, nslot: int) -> int:
 
 
 @wp.func
-def _previous_slot(slot_stamp: wp.array2d(dtype=int), slot_key: wp.array2d(dtype=int), now: int, worldid: int,
-                   key: int) -> int:
-  """The slot of ``key``'s entry of the previous call; -1 when there is none."""
+def _slot_of(slot_stamp: wp.array2d(dtype=int), slot_key: wp.array2d(dtype=int), worldid: int, key: int, stamp: int,
+             live_from: int) -> int:
+  """The slot of ``key``'s entry of call ``stamp``, -1 when there is none: the walk from its home
+  slot passes slots of call ``live_from`` or later (an entry can lie beyond them) and stops at an
+  older one."""
   nslot = slot_key.shape[1]
   s = _home(key, nslot)
   for _ in range(nslot):
     t = slot_stamp[worldid, s]
-    if t < now - 2:
+    if t < live_from:
       break
-    if t == now - 1 and slot_key[worldid, s] == key:
+    if t == stamp and slot_key[worldid, s] == key:
       return s
     s = (s + 1) & (nslot - 1)
   return -1
+
+
+@wp.func
+def _previous_slot(slot_stamp: wp.array2d(dtype=int), slot_key: wp.array2d(dtype=int), now: int, worldid: int,
+                   key: int) -> int:
+  """The slot of ``key``'s entry of the previous call; -1 when there is none. Slots of the call
+  before it may lie in the way: they were live when the previous call inserted."""
+  return _slot_of(slot_stamp, slot_key, worldid, key, now - 1, now - 2)
 
 
 @wp.func
@@ -153,18 +163,12 @@ def update(
   value: wp.vec4,
 ) -> int:
   """Replaces the (normal, depth) of ``key`` that this call's ``insert`` stored (a later stage
-  corrected it); returns its slot, -1 (nothing replaced) when the table had no room for it."""
-  nslot = slot_key.shape[1]
-  s = _home(key, nslot)
-  for _ in range(nslot):
-    t = slot_stamp[worldid, s]
-    if t <= now - 2:  # a slot insert found free: the key was stored before it or not at all
-      return -1
-    if t == now and slot_key[worldid, s] == key:
-      slot_value[worldid, s] = value
-      return s
-    s = (s + 1) & (nslot - 1)
-  return -1
+  corrected it); returns its slot, -1 (nothing replaced) when the table had no room for it. The
+  walk stops at a slot insert found free: the key was stored before it or not at all."""
+  s = _slot_of(slot_stamp, slot_key, worldid, key, now, now - 1)
+  if s >= 0:
+    slot_value[worldid, s] = value
+  return s
 
 
 @wp.kernel

@@ -1,11 +1,9 @@
 """The installed collision stage: the driver that runs the stages in pipeline order.
 
 Each stage module owns its kernels, its per-Data buffers and the function that launches them
-(``broadphase.launch``, ``narrowphase.launch``, ``deep_pairs.launch``, ``multicontact_pass.launch_multicontact``,
-``heightfield.launch``, ``nonconvex.launch``, ``contact_quota.start`` / ``pack``,
-``contact_sort.sort_contacts``, ``stage_ends``). This module holds the model-time data the stages read (``Collider``), the
-per-Data state (``DataState``: one buffer set per stage) and the order of the calls; it launches
-no kernel of its own.
+(broadphase, narrowphase, deep_pairs, multicontact_pass, heightfield, nonconvex, contact_quota,
+contact_sort, stage_ends). This module holds the model-time data the stages read (``Collider``),
+the per-Data state (``DataState``) and the order of the calls; it launches no kernel of its own.
 """
 
 import dataclasses
@@ -70,8 +68,7 @@ class Collider:
       raise ValueError(_SLEEP_QUOTA)
     self.options = options
     self.ngeom, self.nq, self.nbody = mjm.ngeom, mjm.nq, mjm.nbody
-    device = m.geom_type.device
-    self.device = device
+    self.device = device = m.geom_type.device
     with wp.ScopedDevice(device):
       self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device)
       stock = np.isin(np.asarray(mjm.geom_type), [int(t) for t in STOCK_TYPES])
@@ -92,8 +89,7 @@ class Collider:
       present = routing.pair_types_present(mjm, pairs)
       self.analytic_types, self.mpr_types, queue_table = routing.pair_queue_table(present, options.narrowphase == "gjk")
       self.pair_queue_type = wp.array(queue_table, dtype=int)
-      core = (GeomType.SPHERE, GeomType.CAPSULE)
-      self.has_core_pairs = any(t1 in core or t2 in core for t1, t2 in self.mpr_types)
+      self.has_core_pairs = any(t in (GeomType.SPHERE, GeomType.CAPSULE) for pair in self.mpr_types for t in pair)
       self.has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       queues = queue_table[t1 * routing.NGEOMTYPE + t2]
@@ -104,8 +100,7 @@ class Collider:
       # non-convex meshes: their own triangles' SDFs
       ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
       nonconvex.warn_open_meshes(mjm, ncgeoms)
-      flags = np.zeros(mjm.ngeom, np.int32)
-      flags[ncgeoms] = 1
+      flags = np.isin(np.arange(mjm.ngeom), ncgeoms).astype(np.int32)
       self.geom_nonconvex = wp.array(flags, dtype=int)
       self.has_nonconvex_pairs = bool(len(ncgeoms)) and bool(flags[pairs].any()) if len(pairs) else False
       ncmeshes = {int(mjm.geom_dataid[g]) for g in ncgeoms}
@@ -127,12 +122,18 @@ class Collider:
 
   # --- per-Data state -------------------------------------------------------------------
 
-  def state(self, m, d) -> DataState:
-    """State kept on ``d`` (created on its first collision): one buffer set per stage."""
+  @staticmethod
+  def _states(d) -> weakref.WeakKeyDictionary:
+    """The per-Collider states kept on ``d``: a DataState, or None for the stock path's checked Data."""
     states = getattr(d, _STATE_ATTR, None)
     if states is None:
       states = weakref.WeakKeyDictionary()  # a Collider that is gone takes its state along
       object.__setattr__(d, _STATE_ATTR, states)
+    return states
+
+  def state(self, m, d) -> DataState:
+    """State kept on ``d`` (created on its first collision): one buffer set per stage."""
+    states = self._states(d)
     st = states.get(self)
     if st is None:
       self._check_data(d)
@@ -172,14 +173,12 @@ class Collider:
   def reset_worlds(d, reset: Optional[wp.array] = None) -> None:
     """Drops every installed model's history on ``d`` of the worlds ``reset`` marks (all when
     None): warm-start normals and sweep-and-prune order, so a reset world repeats its run bit for bit."""
-    states = getattr(d, _STATE_ATTR, None)
-    if not states:
-      return
+    states = Collider._states(d)
     if reset is not None and reset.dtype != wp.bool:
       mask = wp.empty(d.nworld, dtype=bool, device=reset.device)
       wp.utils.array_cast(reset, mask)
       reset = mask
-    for st in list(states.values()):
+    for st in [st for st in states.values() if st is not None]:  # the stock path keeps no history
       warmstart.forget(st.warm, st.broad.sap_init, reset)
 
   # --- the collision stage ---------------------------------------------------------------
@@ -194,7 +193,10 @@ class Collider:
 
   def _collision(self, m, d, awake_prev: Optional[wp.array]):
     if self.stock_path:
-      self._check_data(d)  # shapes and devices only: cheap enough for every call
+      states = self._states(d)
+      if self not in states:  # checked once per Data, as the plugin path's state is made once
+        self._check_data(d)
+        states[self] = None
       STOCK_COLLISION(m, d, awake_prev)
       return
     if d.naconmax == 0 or m.opt.disableflags & (DisableBit.CONSTRAINT | DisableBit.CONTACT):

@@ -263,6 +263,21 @@ def test_analytic_only_model_collides_through_stock(options, stock_path):
   assert ("MuJoCo Warp's own collision stage" in str(stats)) == stock_path
 
 
+def test_stock_path_checks_the_data_and_resets_it():
+  """The stock path refuses a Data made for another model, as the plugin's pipeline does, and
+  reset_worlds on a Data it stepped has nothing to drop."""
+  sim = load(_ANALYTIC_ONLY, nworld=2, naconmax=64)
+  collider = sf.install(sim.mjm, sim.m)
+  assert collider.stock_path
+  other = load("terrain", nworld=2)
+  with pytest.raises(ValueError, match=r"Data\.geom_xpos .*another model"):
+    sf.collision(sim.m, other.d)
+  mjw.step(sim.m, sim.d)
+  collider.reset_worlds(sim.d)
+  mjw.step(sim.m, sim.d)
+  assert int(sim.d.nacon.numpy()[0]) > 0
+
+
 def test_models_the_plugin_adds_to_keep_its_pipeline():
   """Meshes (MPR), heightfields and non-convex meshes keep the plugin's pipeline."""
   for scene in ("convex_pile", "terrain", "nonconvex"):

@@ -15,11 +15,7 @@ The scan reads every hull face, too heavy for the convex kernel's registers; onl
 convex kernel finds suspicious (``narrowphase.suspect_deep``: deeper than ``DEEP_GATE`` x the
 smaller shape's bounding radius, with a face on either shape) come here, through a queue of
 ``DEEP_PAIRS_PER_WORLD`` x nworld rows. Pairs beyond it keep MPR's answer, counted
-(``stats(d)["deep_pairs_unchecked"]``). A block of ``DEEP_LANES`` threads checks one pair: a
-robot's link hulls have hundreds of faces, a serial loop too long for one thread when every
-world has tens of deep pairs; the lanes split the faces and the edge crosses and agree on the
-least overlap through a tile reduction. On the CPU a block is one thread, which scans in the
-serial order.
+(``stats(d)["deep_pairs_unchecked"]``).
 
 A pair that stays deep call after call (robot links whose meshes overlap at rest) is not checked
 every call: the check stamps the pair's warm-start entry (warmstart.py's ``slot_checked``), and
@@ -71,10 +67,6 @@ DEEP_PAIRS_PER_WORLD = 64
 # a direction must overlap less than this fraction of the overlap along MPR's normal to be worth
 # an MPR: one that ties with MPR's own face (float32 rounding apart) would only rerun the same answer
 MIN_GAIN = 1.0e-4
-# threads that check one deep pair together (a warp; the CPU runs one): a hull's faces and edge
-# crosses are hundreds of support queries, too long a loop for one thread when a robot has tens
-# of deep pairs a world
-DEEP_LANES = 32
 EDGE_ROUNDS = 4  # steps of the walk over edge-edge directions (_descend_edges)
 # pairs with at most this many edge pairs (a box has 3 edge directions) also try every one: two
 # support queries each
@@ -115,51 +107,22 @@ def _shallower(a: Shape, b: Shape, ms: MeshSupport, mode: int, u: wp.vec3, best:
 
 
 @wp.func
-def _face_count(s: Shape, ms: MeshSupport) -> int:
-  """Faces of s whose normals the check scans: a mesh's hull faces, a box's six, a cylinder's two
-  ends. Curved sides have no face: there MPR's refinement along the normal already walks to the
-  nearest point."""
+def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, sign: float, best: wp.vec4) -> wp.vec4:
+  """best improved by the outward face normals (times sign: every direction points from A to B)
+  of s, A or B: a mesh's hull faces, a box's six, a cylinder's two ends. Curved sides have no
+  face: there MPR's refinement along the normal already walks to the nearest point."""
   if s.gtype == GeomType.MESH:
-    return ms.plane_num[s.mesh]
-  if s.gtype == GeomType.BOX:
-    return 6
-  if s.gtype == GeomType.CYLINDER:
-    return 2
-  return 0
-
-
-@wp.func
-def _face_normal(s: Shape, ms: MeshSupport, k: int) -> wp.vec3:
-  """The k-th outward face normal of s (world; see _face_count): a mesh's hull planes in order; a
-  box's axes, each along and against; a cylinder's axis, along and against."""
-  if s.gtype == GeomType.MESH:
-    plane = ms.plane[ms.plane_adr[s.mesh] + k]
-    return s.rot @ wp.vec3(plane[0], plane[1], plane[2])
-  c = wp.where(s.gtype == GeomType.BOX, k // 2, 2)
-  axis = wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
-  if k % 2 == 0:
-    return axis
-  return -axis
-
-
-@wp.func
-def _least_of_lanes(best: wp.vec4) -> wp.vec4:
-  """Of the block's lanes' best (direction, overlap), the one of least overlap, in every lane."""
-  lane = wp.tile_argmin(wp.tile(best[3]))
-  return wp.tile(best, preserve_type=True)[lane[0]]
-
-
-@wp.func
-def _face_normals(a: Shape, b: Shape, ms: MeshSupport, mode: int, lane: int, lanes: int, best: wp.vec4) -> wp.vec4:
-  """best improved by the outward face normals of A and, turned to point from A to B, of B: each
-  lane of the block scans every lanes-th of them."""
-  na = _face_count(a, ms)
-  for k in range(lane, na + _face_count(b, ms), lanes):
-    if k < na:
-      best = _shallower(a, b, ms, mode, _face_normal(a, ms, k), best)
-    else:
-      best = _shallower(a, b, ms, mode, -_face_normal(b, ms, k - na), best)
-  return _least_of_lanes(best)
+    adr = ms.plane_adr[s.mesh]
+    for f in range(ms.plane_num[s.mesh]):
+      plane = ms.plane[adr + f]
+      best = _shallower(a, b, ms, mode, sign * (s.rot @ wp.vec3(plane[0], plane[1], plane[2])), best)
+  elif s.gtype == GeomType.BOX or s.gtype == GeomType.CYLINDER:
+    first = wp.where(s.gtype == GeomType.BOX, 0, 2)
+    for c in range(first, 3):
+      axis = wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
+      best = _shallower(a, b, ms, mode, sign * axis, best)
+      best = _shallower(a, b, ms, mode, -sign * axis, best)
+  return best
 
 
 @wp.func
@@ -191,16 +154,18 @@ def _edge(s: Shape, ms: MeshSupport, vertex: int, k: int) -> wp.vec3:
 
 
 @wp.func
-def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, lane: int, lanes: int, best: wp.vec4) -> wp.vec4:
+def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
   """best improved by the cross products of the edges of A and B at their support points along
-  best's direction (each turned to point from A to B), every lanes-th pair of edges a lane."""
+  best's direction (each turned to point from A to B)."""
   u = wp.vec3(best[0], best[1], best[2])
   va = _support_vertex(a, ms, u, mode)
   vb = _support_vertex(b, ms, -u, mode)
   nb = _edge_count(b, ms, vb)
-  for p in range(lane, _edge_count(a, ms, va) * nb, lanes):
-    best = _cross_direction(a, b, ms, mode, _edge(a, ms, va, p // nb), _edge(b, ms, vb, p % nb), u, best)
-  return _least_of_lanes(best)
+  for i in range(_edge_count(a, ms, va)):
+    ea = _edge(a, ms, va, i)
+    for j in range(nb):
+      best = _cross_direction(a, b, ms, mode, ea, _edge(b, ms, vb, j), u, best)
+  return best
 
 
 @wp.func
@@ -247,66 +212,66 @@ def _crosses_with_edge(
 
 
 @wp.func
-def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, lane: int, lanes: int,
-                      best: wp.vec4) -> wp.vec4:
+def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
   """best improved by the crosses of every edge of A with every edge of B (turned to the side of
-  best's direction); each lane takes the edges of every lanes-th box axis or hull vertex of A."""
+  best's direction)."""
   u = wp.vec3(best[0], best[1], best[2])
   if a.gtype == GeomType.BOX:
-    for k in range(lane, 3, lanes):
+    for k in range(3):
       best = _crosses_with_edge(a, b, ms, mode, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), u, best)
   elif a.gtype == GeomType.MESH:
-    for v in range(lane, ms.hull_num[a.mesh], lanes):
+    for v in range(ms.hull_num[a.mesh]):
       g = ms.hull_adr[a.mesh] + v
       for k in range(ms.nbr_num[g]):
         other = ms.nbr[ms.nbr_adr[g] + k]
         if other > v:
           ea = a.rot @ (hull_point(ms, a.mesh, other) - hull_point(ms, a.mesh, v))
           best = _crosses_with_edge(a, b, ms, mode, ea, u, best)
-  return _least_of_lanes(best)
+  return best
 
 
 @wp.func
-def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, lane: int, lanes: int, best: wp.vec4) -> wp.vec4:
+def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
   """best improved by walking over edge-edge directions: the crosses of the edges at the support
   points, again from the better one found, up to EDGE_ROUNDS times. A polytope pair's
   penetration direction need not be a face normal of either shape; where it is an edge-edge
   direction, its edges lie at the support points of directions near it."""
   for _ in range(EDGE_ROUNDS):
     start = best[3]
-    best = _edge_crosses(a, b, ms, mode, lane, lanes, best)
+    best = _edge_crosses(a, b, ms, mode, best)
     if not (best[3] < start):
       break
   return best
 
 
 @wp.func
-def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, lane: int, lanes: int) -> wp.vec4:
+def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec4:
   """Of ``normal``, the face normals of A and B and the edge-edge directions found near the best
   of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
-  the one along which A and B overlap least, and that overlap (xyz, w). The ``lanes`` threads of
-  a block share the scans (``lane``: this thread's); every one of them returns the answer."""
+  the one along which A and B overlap least, and that overlap (xyz, w)."""
   start = wp.vec4(normal[0], normal[1], normal[2], FAR)
   start = _shallower(a, b, ms, mode, normal, start)
-  best = _descend_edges(a, b, ms, mode, lane, lanes, _face_normals(a, b, ms, mode, lane, lanes, start))
-  near = _descend_edges(a, b, ms, mode, lane, lanes, start)
+  best = _face_normals(a, a, b, ms, mode, 1.0, start)
+  best = _descend_edges(a, b, ms, mode, _face_normals(b, a, b, ms, mode, -1.0, best))
+  near = _descend_edges(a, b, ms, mode, start)
   if near[3] < best[3]:
     best = near
   # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
   # where it starts)
   if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
-    best = _all_edge_crosses(a, b, ms, mode, lane, lanes, best)
+    best = _all_edge_crosses(a, b, ms, mode, best)
   return best
 
 
 @wp.func
 def checked_answer(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, res: MprResult, least: wp.vec4, scale: float, tol: float,
-  iterations: int, refine: int,
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, res: MprResult, scale: float, tol: float, iterations: int,
+  refine: int,
 ) -> MprResult:
-  """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap ``least``
+  """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
   (least_overlap) when that comes out shallower."""
   along = overlap_along(a, b, ms, mode, res.normal)
+  least = least_overlap(a, b, ms, mode, res.normal)
   if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
     return res
   u = wp.vec3(least[0], least[1], least[2])
@@ -364,7 +329,7 @@ def deep_pair_kernel(
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
-  nblock: int,
+  nthread: int,
   quota: ContactQuota,
   # Out:
   ws_slot_value: wp.array2d(dtype=wp.vec4),
@@ -391,13 +356,11 @@ def deep_pair_kernel(
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
 ):
-  """The deep answers the convex kernel queued, a block of threads a pair: each checked along the
-  face normals and edge crosses of both shapes (least_overlap, the block's lanes sharing the
-  scans), then, by the block's first lane, rerun along the best direction (checked_answer) and
-  queued for multi-contact or written as the convex kernel does."""
-  block, lane = wp.tid()
-  lanes = wp.block_dim()
-  for s in range(block, wp.min(deep_count[0], deep_pair.shape[0]), nblock):
+  """The deep answers the convex kernel queued, one thread a pair: each checked along the face
+  normals of both shapes (checked_answer), then queued for multi-contact or written as the
+  convex kernel does."""
+  tid = wp.tid()
+  for s in range(tid, wp.min(deep_count[0], deep_pair.shape[0]), nthread):
     cid = deep_pair[s]
     geoms = pair_in[cid]
     worldid = pair_worldid_in[cid]
@@ -415,10 +378,7 @@ def deep_pair_kernel(
     res.normal = wp.vec3(queued[0], queued[1], queued[2])
     res.depth = queued[3]
     res.pos = deep_pos[s]
-    least = least_overlap(a, b, ms, support_mode, res.normal, lane, lanes)
-    if lane != 0:
-      continue
-    res = checked_answer(a, b, ms, support_mode, res, least, scale, tolerance, iterations, refine)
+    res = checked_answer(a, b, ms, support_mode, res, scale, tolerance, iterations, refine)
     value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
     if warm_start:
       key = geoms[0] * geom_type.shape[0] + geoms[1]
@@ -449,11 +409,10 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
   opt = c.options
   if not c.mpr_types or opt.narrowphase == "gjk":
     return
-  nblock = max(1, min(b.pair.shape[0], GRID_THREADS // DEEP_LANES))
-  wp.launch_tiled(
+  nthread = max(1, min(b.pair.shape[0], GRID_THREADS))
+  wp.launch(
     deep_pair_kernel,
-    dim=nblock,
-    block_dim=DEEP_LANES,
+    dim=nthread,
     inputs=[
       m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
       m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
@@ -461,7 +420,7 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
       m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, SUPPORT_MODE_ID[opt.support_mode],
       opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine, opt.max_contacts_per_pair if opt.multi_contact else 1,
       opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
-      b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nblock, quota,
+      b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
     ],
     outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
              narrow.patch_pos] + contact_outputs(d),

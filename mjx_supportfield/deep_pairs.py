@@ -55,6 +55,7 @@ from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import mesh_support_index
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import FAR
+from mjx_supportfield.types import SUPPORT_FIELD
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -67,6 +68,10 @@ DEEP_PAIRS_PER_WORLD = 64
 # a direction must overlap less than this fraction of the overlap along MPR's normal to be worth
 # an MPR: one that ties with MPR's own face (float32 rounding apart) would only rerun the same answer
 MIN_GAIN = 1.0e-4
+# a direction is skipped when a lower bound of its overlap exceeds the best overlap by this
+# fraction of the pair's scale (plus float rounding at the shapes' distance from the origin)
+PRUNE_SLACK = 1.0e-4
+FLOAT_EPS = 1.1920929e-07  # float32's machine epsilon
 EDGE_ROUNDS = 4  # steps of the walk over edge-edge directions (_descend_edges)
 # pairs with at most this many edge pairs (a box has 3 edge directions) also try every one: two
 # support queries each
@@ -106,8 +111,60 @@ def _shallower(a: Shape, b: Shape, ms: MeshSupport, mode: int, u: wp.vec3, best:
   return best
 
 
+@wp.struct
+class Witness:
+  """Points known to lie in A and in B. Along any direction u they bound the overlap from below
+  without a support query (A reaches at least as far along u as its points, B at least as far
+  against it), so that the scans skip most directions: a robot link's hull has hundreds of faces,
+  and only those that face the other shape can beat MPR's answer."""
+
+  a0: wp.vec3  # A's interior point
+  a1: wp.vec3  # A's support point along MPR's normal
+  b0: wp.vec3
+  b1: wp.vec3
+  # how far a bound must exceed the best overlap to skip the direction (float rounding of both);
+  # FAR skips nothing: with support_mode="field" a support can fall short of the hull's extent
+  slack: float
+
+
 @wp.func
-def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, sign: float, best: wp.vec4) -> wp.vec4:
+def witness(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, scale: float) -> Witness:
+  """The witness points of a pair whose MPR normal is ``normal`` (from A to B)."""
+  w = Witness()
+  w.a0 = a.center
+  w.a1 = support_world(a, ms, normal, mode)
+  w.b0 = b.center
+  w.b1 = support_world(b, ms, -normal, mode)
+  w.slack = FAR
+  if mode != SUPPORT_FIELD:
+    w.slack = PRUNE_SLACK * scale + 32.0 * FLOAT_EPS * (wp.length(a.pos) + wp.length(b.pos))
+  return w
+
+
+@wp.func
+def _a_reach(w: Witness, u: wp.vec3) -> float:
+  """How far A reaches along u at least."""
+  return wp.max(wp.dot(u, w.a0), wp.dot(u, w.a1))
+
+
+@wp.func
+def _b_reach(w: Witness, u: wp.vec3) -> float:
+  """How far B reaches against u at least (the least of its points' projections on u)."""
+  return wp.min(wp.dot(u, w.b0), wp.dot(u, w.b1))
+
+
+@wp.func
+def _hull_face_bound(s: Shape, a: Shape, b: Shape, w: Witness, sign: float, n: wp.vec3, offset: float) -> float:
+  """A lower bound of the overlap along the hull face of s (A when sign is 1, B when -1) whose
+  world normal is n and plane offset ``offset``: the face's own side is exact, its plane."""
+  if sign > 0.0:
+    return wp.dot(n, a.pos) + offset + a.inflate - _b_reach(w, n)
+  return _a_reach(w, -n) + wp.dot(n, b.pos) + offset + b.inflate
+
+
+@wp.func
+def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, sign: float,
+                  best: wp.vec4) -> wp.vec4:
   """best improved by the outward face normals (times sign: every direction points from A to B)
   of s, A or B: a mesh's hull faces, a box's six, a cylinder's two ends. Curved sides have no
   face: there MPR's refinement along the normal already walks to the nearest point."""
@@ -115,7 +172,9 @@ def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, sign
     adr = ms.plane_adr[s.mesh]
     for f in range(ms.plane_num[s.mesh]):
       plane = ms.plane[adr + f]
-      best = _shallower(a, b, ms, mode, sign * (s.rot @ wp.vec3(plane[0], plane[1], plane[2])), best)
+      n = s.rot @ wp.vec3(plane[0], plane[1], plane[2])
+      if _hull_face_bound(s, a, b, w, sign, n, plane[3]) <= best[3] + w.slack:
+        best = _shallower(a, b, ms, mode, sign * n, best)
   elif s.gtype == GeomType.BOX or s.gtype == GeomType.CYLINDER:
     first = wp.where(s.gtype == GeomType.BOX, 0, 2)
     for c in range(first, 3):
@@ -154,29 +213,43 @@ def _edge(s: Shape, ms: MeshSupport, vertex: int, k: int) -> wp.vec3:
 
 
 @wp.func
-def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+def _vertex_or(s: Shape, ms: MeshSupport, vertex: int, otherwise: wp.vec3) -> wp.vec3:
+  """World position of a mesh shape's hull vertex; ``otherwise`` (a point of s) for other types."""
+  if s.gtype == GeomType.MESH:
+    return s.pos + s.rot @ hull_point(ms, s.mesh, vertex)
+  return otherwise
+
+
+@wp.func
+def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, best: wp.vec4) -> wp.vec4:
   """best improved by the cross products of the edges of A and B at their support points along
   best's direction (each turned to point from A to B)."""
   u = wp.vec3(best[0], best[1], best[2])
   va = _support_vertex(a, ms, u, mode)
   vb = _support_vertex(b, ms, -u, mode)
+  pa = _vertex_or(a, ms, va, w.a1)
+  pb = _vertex_or(b, ms, vb, w.b1)
   nb = _edge_count(b, ms, vb)
   for i in range(_edge_count(a, ms, va)):
     ea = _edge(a, ms, va, i)
     for j in range(nb):
-      best = _cross_direction(a, b, ms, mode, ea, _edge(b, ms, vb, j), u, best)
+      best = _cross_direction(a, b, ms, mode, w, ea, _edge(b, ms, vb, j), pa, pb, u, best)
   return best
 
 
 @wp.func
 def _cross_direction(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, ea: wp.vec3, eb: wp.vec3, u: wp.vec3, best: wp.vec4
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, ea: wp.vec3, eb: wp.vec3, pa: wp.vec3, pb: wp.vec3,
+  u: wp.vec3, best: wp.vec4
 ) -> wp.vec4:
-  """best improved by the cross product of edges ea (of A) and eb (of B), turned to the side of u."""
+  """best improved by the cross product of edges ea (of A, through point pa) and eb (of B, through
+  pb), turned to the side of u."""
   c = wp.cross(ea, eb)
   if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
     c = wp.normalize(c)
-    best = _shallower(a, b, ms, mode, wp.where(wp.dot(c, u) < 0.0, -c, c), best)
+    c = wp.where(wp.dot(c, u) < 0.0, -c, c)
+    if wp.max(_a_reach(w, c), wp.dot(c, pa)) - wp.min(_b_reach(w, c), wp.dot(c, pb)) <= best[3] + w.slack:
+      best = _shallower(a, b, ms, mode, c, best)
   return best
 
 
@@ -194,12 +267,13 @@ def _edge_ends(s: Shape, ms: MeshSupport) -> int:
 
 @wp.func
 def _crosses_with_edge(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, ea: wp.vec3, u: wp.vec3, best: wp.vec4
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, ea: wp.vec3, pa: wp.vec3, u: wp.vec3, best: wp.vec4
 ) -> wp.vec4:
-  """best improved by the crosses of edge ea of A with every edge of B (each once)."""
+  """best improved by the crosses of edge ea of A (through point pa) with every edge of B (each once)."""
   if b.gtype == GeomType.BOX:
     for k in range(3):
-      best = _cross_direction(a, b, ms, mode, ea, wp.vec3(b.rot[0, k], b.rot[1, k], b.rot[2, k]), u, best)
+      eb = wp.vec3(b.rot[0, k], b.rot[1, k], b.rot[2, k])
+      best = _cross_direction(a, b, ms, mode, w, ea, eb, pa, w.b1, u, best)
   elif b.gtype == GeomType.MESH:
     for v in range(ms.hull_num[b.mesh]):
       g = ms.hull_adr[b.mesh] + v
@@ -207,18 +281,18 @@ def _crosses_with_edge(
         other = ms.nbr[ms.nbr_adr[g] + k]
         if other > v:
           eb = b.rot @ (hull_point(ms, b.mesh, other) - hull_point(ms, b.mesh, v))
-          best = _cross_direction(a, b, ms, mode, ea, eb, u, best)
+          best = _cross_direction(a, b, ms, mode, w, ea, eb, pa, _vertex_or(b, ms, v, w.b1), u, best)
   return best
 
 
 @wp.func
-def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, best: wp.vec4) -> wp.vec4:
   """best improved by the crosses of every edge of A with every edge of B (turned to the side of
   best's direction)."""
   u = wp.vec3(best[0], best[1], best[2])
   if a.gtype == GeomType.BOX:
     for k in range(3):
-      best = _crosses_with_edge(a, b, ms, mode, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), u, best)
+      best = _crosses_with_edge(a, b, ms, mode, w, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), w.a1, u, best)
   elif a.gtype == GeomType.MESH:
     for v in range(ms.hull_num[a.mesh]):
       g = ms.hull_adr[a.mesh] + v
@@ -226,40 +300,42 @@ def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.v
         other = ms.nbr[ms.nbr_adr[g] + k]
         if other > v:
           ea = a.rot @ (hull_point(ms, a.mesh, other) - hull_point(ms, a.mesh, v))
-          best = _crosses_with_edge(a, b, ms, mode, ea, u, best)
+          best = _crosses_with_edge(a, b, ms, mode, w, ea, _vertex_or(a, ms, v, w.a1), u, best)
   return best
 
 
 @wp.func
-def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, best: wp.vec4) -> wp.vec4:
+def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, best: wp.vec4) -> wp.vec4:
   """best improved by walking over edge-edge directions: the crosses of the edges at the support
   points, again from the better one found, up to EDGE_ROUNDS times. A polytope pair's
   penetration direction need not be a face normal of either shape; where it is an edge-edge
   direction, its edges lie at the support points of directions near it."""
   for _ in range(EDGE_ROUNDS):
     start = best[3]
-    best = _edge_crosses(a, b, ms, mode, best)
+    best = _edge_crosses(a, b, ms, mode, w, best)
     if not (best[3] < start):
       break
   return best
 
 
 @wp.func
-def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec4:
+def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, scale: float) -> wp.vec4:
   """Of ``normal``, the face normals of A and B and the edge-edge directions found near the best
   of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
-  the one along which A and B overlap least, and that overlap (xyz, w)."""
+  the one along which A and B overlap least, and that overlap (xyz, w). Directions whose
+  overlap the witness points bound above the best found so far are skipped (Witness)."""
+  w = witness(a, b, ms, mode, normal, scale)
   start = wp.vec4(normal[0], normal[1], normal[2], FAR)
   start = _shallower(a, b, ms, mode, normal, start)
-  best = _face_normals(a, a, b, ms, mode, 1.0, start)
-  best = _descend_edges(a, b, ms, mode, _face_normals(b, a, b, ms, mode, -1.0, best))
-  near = _descend_edges(a, b, ms, mode, start)
+  best = _face_normals(a, a, b, ms, mode, w, 1.0, start)
+  best = _descend_edges(a, b, ms, mode, w, _face_normals(b, a, b, ms, mode, w, -1.0, best))
+  near = _descend_edges(a, b, ms, mode, w, start)
   if near[3] < best[3]:
     best = near
   # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
   # where it starts)
   if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
-    best = _all_edge_crosses(a, b, ms, mode, best)
+    best = _all_edge_crosses(a, b, ms, mode, w, best)
   return best
 
 
@@ -271,7 +347,7 @@ def checked_answer(
   """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
   (least_overlap) when that comes out shallower."""
   along = overlap_along(a, b, ms, mode, res.normal)
-  least = least_overlap(a, b, ms, mode, res.normal)
+  least = least_overlap(a, b, ms, mode, res.normal, scale)
   if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
     return res
   u = wp.vec3(least[0], least[1], least[2])

@@ -258,11 +258,12 @@ def _edge_ends(s: Shape, ms: MeshSupport) -> int:
   """Edge ends of s: a mesh's hull edges counted at both ends; a box's 3 directions; 0 else."""
   if s.gtype == GeomType.BOX:
     return 3
-  total = int(0)
-  if s.gtype == GeomType.MESH:
-    for v in range(ms.hull_num[s.mesh]):
-      total += ms.nbr_num[ms.hull_adr[s.mesh] + v]
-  return total
+  if s.gtype == GeomType.MESH and ms.hull_num[s.mesh] > 0:
+    # the hull vertices' neighbour lists lie one after another (support_field.py)
+    first = ms.hull_adr[s.mesh]
+    last = first + ms.hull_num[s.mesh] - 1
+    return ms.nbr_adr[last] + ms.nbr_num[last] - ms.nbr_adr[first]
+  return 0
 
 
 @wp.func
@@ -327,11 +328,12 @@ def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec
   w = witness(a, b, ms, mode, normal, scale)
   start = wp.vec4(normal[0], normal[1], normal[2], FAR)
   start = _shallower(a, b, ms, mode, normal, start)
-  best = _face_normals(a, a, b, ms, mode, w, 1.0, start)
-  best = _descend_edges(a, b, ms, mode, w, _face_normals(b, a, b, ms, mode, w, -1.0, best))
-  near = _descend_edges(a, b, ms, mode, w, start)
-  if near[3] < best[3]:
-    best = near
+  faces = _face_normals(b, a, b, ms, mode, w, -1.0, _face_normals(a, a, b, ms, mode, w, 1.0, start))
+  best = _descend_edges(a, b, ms, mode, w, faces)
+  if faces[3] < start[3]:  # else the walk from MPR's normal is the one just taken
+    near = _descend_edges(a, b, ms, mode, w, start)
+    if near[3] < best[3]:
+      best = near
   # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
   # where it starts)
   if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:

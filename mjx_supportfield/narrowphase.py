@@ -83,7 +83,8 @@ _PHASE_MIX = wp.constant(wp.uint32(2654435769))
 
 @functools.lru_cache(maxsize=None)
 def analytic_kernel(pair_types: tuple, per_world: bool = False):
-  """Grid-stride kernel running MuJoCo Warp's analytic routine of each pair type present.
+  """Grid-stride kernel running MuJoCo Warp's analytic routine of each pair type present: a
+  pair's contact parameters and poses are read once, then its type picks the routine.
 
   ``per_world`` (Options.contacts_per_world > 0): the routines write through views of each
   world's rows (contact_quota.world_rows). Without it they get the contact arrays themselves:
@@ -182,55 +183,58 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
           contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out,
           contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
         )
-      for i in range(wp.static(len(funcs))):
-        if type1 == wp.static(pair_types[i][0]) and type2 == wp.static(pair_types[i][1]):
-          _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-            geom_condim,
-            geom_priority,
-            geom_solmix,
-            geom_solref,
-            geom_solimp,
-            geom_friction,
-            geom_margin,
-            geom_gap,
-            geom_adhesion,
-            pair_dim,
-            pair_solref,
-            pair_solreffriction,
-            pair_solimp,
-            pair_margin,
-            pair_gap,
-            pair_adhesion,
-            pair_friction,
-            pair_in,
-            pairid_in,
-            cid,
-            worldid,
-          )
-          geom1, geom2 = geom_collision_pair(
-            geom_type,
-            geom_dataid,
-            geom_size,
-            mesh_vertadr,
-            mesh_vertnum,
-            mesh_graphadr,
-            mesh_vert,
-            mesh_graph,
-            mesh_polynum,
-            mesh_polyadr,
-            mesh_polynormal,
-            mesh_polyvertadr,
-            mesh_polyvertnum,
-            mesh_polyvert,
-            mesh_polymapadr,
-            mesh_polymapnum,
-            mesh_polymap,
-            geom_xpos_in,
-            geom_xmat_in,
-            geoms,
-            worldid,
-          )
-          wp.static(funcs[i])(
+      # the parameters and poses read once, before the routine's branch, as stock MuJoCo Warp's
+      # kernel does: read inside each branch, a warp of mixed pair types ran them once per type
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+        geom_condim,
+        geom_priority,
+        geom_solmix,
+        geom_solref,
+        geom_solimp,
+        geom_friction,
+        geom_margin,
+        geom_gap,
+        geom_adhesion,
+        pair_dim,
+        pair_solref,
+        pair_solreffriction,
+        pair_solimp,
+        pair_margin,
+        pair_gap,
+        pair_adhesion,
+        pair_friction,
+        pair_in,
+        pairid_in,
+        cid,
+        worldid,
+      )
+      geom1, geom2 = geom_collision_pair(
+        geom_type,
+        geom_dataid,
+        geom_size,
+        mesh_vertadr,
+        mesh_vertnum,
+        mesh_graphadr,
+        mesh_vert,
+        mesh_graph,
+        mesh_polynum,
+        mesh_polyadr,
+        mesh_polynormal,
+        mesh_polyvertadr,
+        mesh_polyvertnum,
+        mesh_polyvert,
+        mesh_polymapadr,
+        mesh_polymapnum,
+        mesh_polymap,
+        geom_xpos_in,
+        geom_xmat_in,
+        geoms,
+        worldid,
+      )
+      pairid = pairid_in[cid]
+      for k in range(wp.static(len(funcs))):
+        if type1 == wp.static(pair_types[k][0]) and type2 == wp.static(pair_types[k][1]):
+          wp.static(funcs[k])(
             limit,
             geom1,
             geom2,
@@ -244,7 +248,7 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
             solimp,
             adhesion,
             geoms,
-            pairid_in[cid],
+            pairid,
             rows_dist,
             rows_pos,
             rows_frame,

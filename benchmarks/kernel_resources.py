@@ -22,6 +22,7 @@ import tempfile
 import time
 
 import warp as wp
+from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield import broadphase
 from mjx_supportfield import deep_pairs
@@ -29,9 +30,12 @@ from mjx_supportfield import heightfield
 from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
 from mjx_supportfield import nonconvex
+from mjx_supportfield import routing
 
 # broad-phase kernels are built per model; this key is a model without per-world sizes or sleep
 _KEY = (0, 1, 1, 1, 1, 1, 1, False, False)
+# the analytic kernel is built per model's pair types: those of a scene of primitives (no meshes)
+_PRIMITIVE_PAIRS = tuple(t for t in routing.ANALYTIC_PAIRS if GeomType.MESH not in t)
 
 ENTRY = re.compile(r"Compiling entry function '([^']+)'")
 USAGE = re.compile(r"Used (\d+) registers(?:.*?(\d+) bytes cumulative stack size)?")
@@ -43,12 +47,14 @@ def kernels() -> dict:
     "listed pairs (nxn)": broadphase.listed_pairs_kernel(_KEY, True),
     "compact pairs (SAP)": broadphase.compact_pairs,
     "sift MPR pairs": narrowphase.sift_mpr_pairs,
+    "analytic (primitives)": narrowphase.analytic_kernel(_PRIMITIVE_PAIRS),
     "convex (MPR)": narrowphase.convex_kernel(False),
     "convex (GJK/EPA)": narrowphase.convex_kernel(True),
     "deep pairs (check)": deep_pairs.deep_pair_kernel,
     "tilt (closed form)": multicontact_pass.tilt_kernel,
     "tilt (MPR)": multicontact_pass.tilt_mpr_kernel,
     "patch (multi-contact)": multicontact_pass.patch_kernel,
+    "manifold (face clipping)": multicontact_pass.manifold_kernel,
     "heightfield jobs": heightfield.hfield_jobs,
     "heightfield MPR": heightfield.hfield_mpr,
     "heightfield contacts": heightfield.hfield_contacts,

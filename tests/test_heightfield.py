@@ -15,6 +15,7 @@ from conftest import load
 from conftest import printed
 
 import mjx_supportfield as sf
+from mjx_supportfield import heightfield
 
 sys.path.insert(0, MODELS)
 import make_terrain  # noqa: E402
@@ -115,9 +116,11 @@ def _box_on_bumps():
 
 def test_box_on_bumps_touches_every_bump():
   """A box face on rough terrain rests on every bump that pokes into it: a contact at each of the
-  nine (halfway between the apex and the face, as deep as the apex), as MuJoCo C's prisms find
-  them, not only the five spread widest; every contact a terrain point inside the box at its
-  own depth, none two at one place."""
+  nine (halfway between the apex and the face, as deep as the apex, along the face's normal), as
+  MuJoCo C's prisms find them, not only the five spread widest; the other contacts are points of
+  the bumps' slopes inside the box (one a prism, as MuJoCo C's GJK/EPA gives them, along the
+  slope's normal); every contact a terrain point inside the box at its own depth, none two at one
+  place, and no more of them than MuJoCo C writes."""
   xml, height, apex, depth, face, normal = _box_on_bumps()
   assert np.all(depth > 0.0009) and np.all(depth < 0.0041)
   # MuJoCo C's prisms find these depths too (with libccd's MPR: its default EPA stops short on
@@ -128,16 +131,20 @@ def test_box_on_bumps_touches_every_bump():
   mujoco.mj_forward(mjm, mjd)
   found = np.abs(-mjd.contact.dist[: mjd.ncon, None] - depth[None, :]) < 5e-5
   assert found.any(axis=1).all() and found.any(axis=0).all()
-  _, c = _plugin_contacts(xml)
-  assert c.n <= 16
+  sim, c = _plugin_contacts(xml)
+  assert c.n <= sim.mjd.ncon  # MuJoCo C's default collision, one contact a prism
   on_terrain = c.pos - 0.5 * c.dist[:, None] * c.normal
+  at_apex = np.zeros(c.n, bool)
   for p in apex:
-    assert np.min(np.linalg.norm(on_terrain - p, axis=1)) < 1e-3, (p, on_terrain)
+    nearest = np.linalg.norm(on_terrain - p, axis=1)
+    assert nearest.min() < 1e-3, (p, on_terrain)
+    at_apex[np.argmin(nearest)] = True
   size = (0.4, 0.4, height.max())
   for i in range(c.n):
     assert abs(on_terrain[i, 2] - make_terrain.terrain_height(size, height / height.max(), *on_terrain[i, :2])) < 1e-5
     assert abs((on_terrain[i] - face) @ normal + c.dist[i]) < 1e-5
-    assert angle_deg(c.normal[i], normal) < 0.01
+    # a bump's slopes lean at most 2.5 deg from the face
+    assert angle_deg(c.normal[i], normal) < (0.01 if at_apex[i] else 2.5)
     assert np.min(np.delete(np.linalg.norm(c.pos - c.pos[i], axis=1), i)) > 0.003
 
 
@@ -169,6 +176,35 @@ def test_ball_in_a_hollow_touches_every_triangle():
     assert np.linalg.norm(c.pos[k] - pos) < 1e-4, (pos, c.pos)
     assert abs(c.dist[k] - dist) < 2e-5
     assert angle_deg(c.normal[k], frame[:3]) < 1.0
+
+
+# a frustum-shaped hull: a box-like face below, a smaller one above
+FRUSTUM = "-.04 -.03 -.01 .04 -.03 -.01 .04 .03 -.01 -.04 .03 -.01 -.03 -.02 .01 .03 -.02 .01 .03 .02 .01 -.03 .02 .01"
+
+
+@pytest.mark.parametrize("geom, x, y, yaw, tilt, sink", [
+  ('type="box" size=".04 .03 .01"', 0.02, 0.02, 10, 5, 0.003),
+  ('type="mesh" mesh="frustum"', -0.02, 0.01, 60, 0, 0.002),
+])
+def test_face_on_rough_terrain_covers_mujocos_points(geom, x, y, yaw, tilt, sink):
+  """A box and a hull lying with a face on rough terrain, sunk 2-3 mm: each of MuJoCo C's contact
+  points at least 0.5 mm deep (one a triangle prism, where its GJK/EPA ends, spread over the
+  face) has a contact of the pair within 3 mm, as the prisms' own GJK/EPA gives them (the deepest
+  terrain points alone left a third of them uncovered), and there are hardly more contacts than
+  MuJoCo C writes."""
+  size = (0.0875, 0.0875, 0.02, 0.05)
+  under = [make_terrain.terrain_height(size[:3], ROUGH, x + dx, y + dy) for dx in np.linspace(-0.04, 0.04, 9)
+           for dy in np.linspace(-0.04, 0.04, 9)]
+  body = (f'<body pos="{x} {y} {max(under) + 0.01 - sink}" euler="{tilt} 0 {yaw}"><freejoint/>'
+          f'<geom name="b" {geom}/></body>')
+  xml = _hfield_xml(ROUGH, size, body).replace("</asset>", f'<mesh name="frustum" vertex="{FRUSTUM}"/></asset>')
+  sim, c = _plugin_contacts(xml)
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  deep = ref.pos[ref.dist < -5e-4]
+  assert len(deep) >= 10
+  for p in deep:
+    assert np.min(np.linalg.norm(c.pos - p, axis=1)) < 3e-3, (p, c.pos)
+  assert c.n <= len(ref) + 1
 
 
 def test_bad_heightfield_is_rejected():
@@ -258,3 +294,20 @@ def test_full_mpr_queue_gives_the_same_contacts(dropped):
   np.testing.assert_array_equal(roomy.pos, tight.pos)
   np.testing.assert_array_equal(roomy.dist, tight.dist)
   np.testing.assert_array_equal(roomy.frame, tight.frame)
+
+
+def test_prisms_without_epa_memory_are_counted(monkeypatch):
+  """Box prisms beyond the MPR queue that find no row of GJK/EPA memory left run MPR, and
+  stats(d) counts them (hfield_ccd_as_mpr), so that the fallback is never silent: two boxes, one
+  row of memory."""
+  size = (0.0875, 0.0875, 0.02, 0.05)
+  bodies = "".join(f'<body pos="{x} 0.02 0.028" euler="5 0 10"><freejoint/><geom type="box" size=".03 .02 .01"/></body>'
+                   for x in (-0.04, 0.04))
+  monkeypatch.setattr(heightfield, "CCD_THREADS", 1)
+  sim = load(_hfield_xml(ROUGH, size, bodies))
+  collider = sf.install(sim.mjm, sim.m, sf.Options(hfield_mprs_per_pair=1))
+  sf.collision(sim.m, sim.d)
+  stats = collider.stats(sim.d)
+  assert stats["hfield_mprs_unqueued"] > 0 and stats["hfield_ccd_as_mpr"] > 0
+  assert "without GJK/EPA memory" in str(stats)
+  assert contacts(sim.d, 0).n > 0

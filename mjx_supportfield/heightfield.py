@@ -106,7 +106,13 @@ from mjx_supportfield.hfield_window import (
 )
 
 
-wp.set_module_options({"enable_backward": False})
+# no contraction of multiply-adds into FMAs: GJK/EPA's answer for a face resting on a prism is
+# ill-conditioned (where EPA ends on the face moves by millimetres with the last bit of the input),
+# and a GPU compiler contracts the same code differently in each kernel that inlines it, so a
+# prism run in hfield_ccd and the same prism run beyond the queue in hfield_contacts gave different
+# contacts; without contraction every operation rounds as written, in each kernel and on the CPU
+# (whose code this option leaves as it was)
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 
 @wp.kernel

@@ -11,7 +11,8 @@ from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import world_rows
 from mjx_supportfield.types import FAR
 
-NCANDIDATE = 16  # contact candidates kept per pair before the final choice
+NCANDIDATE = 32  # room for contact candidates per pair before the final choice (the most any source asks)
+ROOM = 16  # candidates a source keeps unless it asks for more (empty_with_room)
 MAX_CONTACTS = 8  # most contacts of the spread choice per pair (Options.max_contacts_per_pair bounds it too)
 
 mat_cand = wp.types.matrix(shape=(NCANDIDATE, 3), dtype=float)
@@ -28,16 +29,24 @@ class Candidates:
   normal: mat_cand
   depth: vec_cand
   cut: int  # 1 when the source had to skip part of the work (the caller's overflow)
+  room: int  # candidates kept at most (<= NCANDIDATE); past it a deeper one replaces the shallowest
   keep: float  # candidates deeper than this are written beyond max_contacts (FAR: none)
 
 
 @wp.func
 def empty() -> Candidates:
-  """No candidates."""
+  """No candidates, room for ROOM."""
+  return empty_with_room(ROOM)
+
+
+@wp.func
+def empty_with_room(room: int) -> Candidates:
+  """No candidates, room for ``room`` (at most NCANDIDATE)."""
   c = Candidates()
   c.n = 0
   c.cut = 0
   c.keep = FAR
+  c.room = wp.min(room, NCANDIDATE)
   return c
 
 
@@ -66,12 +75,12 @@ def add_candidate(c: Candidates, pos: wp.vec3, normal: wp.vec3, depth: float, sp
       if depth > c.depth[k]:
         return _put(c, k, pos, normal, depth)
       return c
-  if c.n < NCANDIDATE:
+  if c.n < c.room:
     out = _put(c, c.n, pos, normal, depth)
     out.n = c.n + 1
     return out
   shallowest = int(0)
-  for k in range(NCANDIDATE):
+  for k in range(c.room):
     if c.depth[k] < c.depth[shallowest]:
       shallowest = k
   if depth > c.depth[shallowest]:

@@ -97,6 +97,9 @@ class Collider:
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
       nhfield = int(((t1 == GeomType.HFIELD) & np.isin(t2, [int(t) for t in CONVEX_TYPES])).sum())
       self.hfield_pairs_per_world = min(nhfield, self.max_pairs)  # bounds the heightfield kernels' pairs
+      # boxes and meshes on a heightfield collide its prisms by MuJoCo Warp's GJK/EPA (heightfield.py)
+      self.hfield_ccd = bool(((t1 == GeomType.HFIELD) & np.isin(t2, [int(GeomType.BOX), int(GeomType.MESH)])).any())
+      self.hfield_ccd_iterations = int(mjm.opt.ccd_iterations)
       # non-convex meshes: their own triangles' SDFs
       ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
       nonconvex.warn_open_meshes(mjm, ncgeoms)

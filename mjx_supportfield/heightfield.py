@@ -15,7 +15,12 @@ give contact candidates in three passes:
   base, as MuJoCo collides) against the geom, kept only when the prism's witness point lies
   on the top triangle and no plane-pass candidate with that normal is as deep. A prism's
   side walls lie inside the terrain: an exact penetration solver would push geoms out
-  sideways through them, so those answers are dropped;
+  sideways through them, so those answers are dropped. A box or a mesh runs MuJoCo Warp's GJK/EPA
+  (collision_gjk.ccd) on each prism instead, built as MuJoCo C builds it, and keeps each prism's
+  answer unless it is a side wall's or a face lying flat on the triangle (whose corners the plane
+  pass has): such a face on rough terrain overlaps many prisms, and MuJoCo C's contact of each
+  lies where its EPA ends, spread over the face, where the deepest terrain points alone leave
+  no contact;
 - the point pass (terrain features in the geom): peaks (grid vertices above the mean of
   their neighbours), and the point of each ridge edge (a convex fold of the surface) nearest
   the geom's centre and its ends, that lie inside the geom; MPR of that point against the
@@ -24,13 +29,16 @@ give contact candidates in three passes:
   ellipsoid, cylinder) also gets the point of each valley edge (a concave fold) nearest its
   centre, kept where its normal leans away from one of the edge's triangles: lying over one
   triangle beside the fold, it touches the triangle across the fold only at that edge.
-Three kernels: hfield_jobs finds each pair's cells and its prism and point MPRs that pass
+Four kernels: hfield_jobs finds each pair's cells and its prism and point MPRs that pass
 cheap tests (B above the triangle's plane, outside a prism's side wall, a point outside B by
 one support query) and queues them; hfield_mpr runs the queued MPRs, one thread each, so that a
 warp's lanes all run MPRs side by side (one thread a pair ran its ten or so one after another,
-beside lanes that had none); hfield_contacts, one thread a pair, adds the plane pass and the
-MPR answers in job order. MPRs that find the queue full (``Options.hfield_mprs_per_pair``) run
-in hfield_contacts instead: the same contacts, slower.
+beside lanes that had none), and hfield_ccd the queued GJK/EPA prisms of boxes and meshes on
+CCD_THREADS threads, each with a row of EPA memory; hfield_contacts, one thread a pair, adds the
+plane pass and the MPR answers in job order. MPRs that find the queue full
+(``Options.hfield_mprs_per_pair``) run in hfield_contacts instead: the same contacts, slower (its
+threads take rows of EPA memory left over by hfield_ccd; a prism that finds none left runs MPR,
+counted in the heightfield count buffer's COUNT_CCD_AS_MPR).
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
 points farthest from those already chosen are written, up to ``max_contacts``, and after them
@@ -43,7 +51,8 @@ more than MAX_CELLS cells keeps the cells nearest its centre and sets ``Overflow
 
 This module owns the heightfield stage's kernels, its install-time check (``check_model``), its
 per-Data buffers (``Buffers``, ``make_buffers``) and its host entry, ``launch``.
-The cells' geometry (vertices, prisms, features, the keep-or-drop tests) is hfield_cells.py's.
+Each pair's window of cells and its jobs (device functions) are hfield_window.py's; the cells'
+geometry (vertices, prisms, features, the keep-or-drop tests) is hfield_cells.py's.
 """
 
 import dataclasses
@@ -51,335 +60,59 @@ import dataclasses
 import mujoco
 import numpy as np
 import warp as wp
+from mujoco_warp._src.collision_core import Geom
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
+from mujoco_warp._src.types import MJ_MAX_EPAFACES
+from mujoco_warp._src.types import MJ_MAX_EPAHORIZON
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import vec5
 
-from mjx_supportfield.candidates import Candidates
-from mjx_supportfield.candidates import add_candidate
-from mjx_supportfield.candidates import empty
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
-from mjx_supportfield.hfield_cells import _axis
-from mjx_supportfield.hfield_cells import _capsule_end
-from mjx_supportfield.hfield_cells import _cell
-from mjx_supportfield.hfield_cells import _cell_size
-from mjx_supportfield.hfield_cells import _corner
-from mjx_supportfield.hfield_cells import _corners
-from mjx_supportfield.hfield_cells import _feature_point
-from mjx_supportfield.hfield_cells import _fold_answer_kept
-from mjx_supportfield.hfield_cells import _outside_walls
-from mjx_supportfield.hfield_cells import _plane_depth
-from mjx_supportfield.hfield_cells import _point_shape
-from mjx_supportfield.hfield_cells import _prism_answer_kept
-from mjx_supportfield.hfield_cells import _prism_shape
-from mjx_supportfield.mpr import MprResult
-from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.contact_quota import contact_outputs
 from mjx_supportfield.narrowphase import GRID_THREADS
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
-from mjx_supportfield.routing import NGEOMTYPE
-from mjx_supportfield.shapes import posed_shape
-from mjx_supportfield.support import support_world
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
-from mjx_supportfield.types import Shape
-
-wp.set_module_options({"enable_backward": False})
-
-MAX_CELLS = 4096  # cells visited per pair (a 64 x 64 window)
-# the passes' MPR reruns start half their depth behind the origin, not mpr.BEHIND x scale: from
-# farther back they converge onto a triangle prism's rim, where the normal leans toward a side
-# wall (a sphere on a sloping plane got a second contact 18° off at the edge between two
-# triangles), and rejecting rim answers outright left bodies sliding on the terrain
-RESTART_BEHIND = 0.0
-
-
-NFEATURE = 9  # terrain features a cell owns for the point pass (see _feature)
-NJOB = 2 + 3 * NFEATURE  # a cell's MPR jobs: two prisms, then up to three points per feature
-KEPT_CELLS = 16  # cells with jobs whose job masks hfield_jobs keeps from its counting sweep
-vec_kept = wp.types.vector(length=KEPT_CELLS, dtype=int)
-# hfield_mpr runs the queued jobs grouped by kind: geom B's type, and prism or point, so that a
-# warp's lanes take the same branches of the support functions
-NKIND = 2 * NGEOMTYPE
-COUNT_PAIRS, COUNT_JOBS, COUNT_UNQUEUED, COUNT_KIND = 0, 1, 2, 3  # hfield_count: then NKIND counts
-
-
-@wp.struct
-class TerrainPair:
-  """A heightfield - convex pair with cells under the geom, as hfield_jobs leaves it for the MPR
-  and contact kernels."""
-
-  cid: int  # index into the pair list
-  window: wp.vec4i  # the cells visited: rows r0 ... r1, columns c0 ... c1
-  lo: wp.vec3  # B's bounds in the terrain frame, grown by band
-  hi: wp.vec3
-  band: float  # margin + gap
-  cut: int  # 1 when B covers more than MAX_CELLS cells (only those around its centre are visited)
-  job_total: int  # the pair's MPR jobs (those that pass the cheap tests)
-  job_start: int  # the first job_count of them, in order, are jobs job_start ... of the MPR queue
-  job_count: int
-  nprism: int  # how many of those are prisms (hfield_order groups them apart from the points)
+from mjx_supportfield.hfield_window import (
+  MAX_CELLS,
+  NJOB,
+  KEPT_CELLS,
+  vec_kept,
+  NKIND,
+  COUNT_PAIRS,
+  COUNT_JOBS,
+  COUNT_UNQUEUED,
+  COUNT_KIND,
+  COUNT_EPA_ROWS,
+  COUNT_CCD_AS_MPR,
+  CCD_THREADS,
+  PrismCcd,
+  TerrainPair,
+  _terrain_pair,
+  _window,
+  _cell_jobs,
+  _job_mpr,
+  _uses_ccd,
+  _ccd_geom,
+  _job_ccd,
+  _job_answer,
+  _plane_pass,
+  _add_job_answer,
+  _bits,
+  _queue_cell,
+)
 
 
-@wp.func
-def _terrain_pair(
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  ms: MeshSupport,
-  geoms: wp.vec2i,
-  worldid: int,
-) -> tuple[Shape, Shape, int]:
-  """The terrain (world frame), geom B posed in the terrain's frame, and the heightfield's id."""
-  terrain = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[0], worldid)
-  b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms[1], worldid)
-  rt = wp.transpose(terrain.rot)
-  b.pos = rt @ (b.pos - terrain.pos)
-  b.center = rt @ (b.center - terrain.pos)
-  b.rot = rt @ b.rot
-  return terrain, b, geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
-
-
-@wp.func
-def _window(b: Shape, ms: MeshSupport, mode: int, band: float, nrow: int, ncol: int, size: wp.vec4) -> TerrainPair:
-  """The cells under B (its bounds grown by band), at most MAX_CELLS around its centre; an
-  empty window (r0 > r1) when B is off the terrain or above or below it."""
-  tp = TerrainPair()
-  tp.band = band
-  tp.cut = 0
-  tp.job_total = 0
-  tp.job_start = 0
-  tp.job_count = 0
-  tp.nprism = 0
-  for k in range(3):
-    tp.hi[k] = support_world(b, ms, _axis(k), mode)[k] + band
-    tp.lo[k] = support_world(b, ms, -_axis(k), mode)[k] - band
-  dx, dy = _cell_size(size, nrow, ncol)
-  c0 = wp.max(0, int(wp.floor((tp.lo[0] + size[0]) / dx)))
-  c1 = wp.min(ncol - 2, int(wp.floor((tp.hi[0] + size[0]) / dx)))
-  r0 = wp.max(0, int(wp.floor((tp.lo[1] + size[1]) / dy)))
-  r1 = wp.min(nrow - 2, int(wp.floor((tp.hi[1] + size[1]) / dy)))
-  if tp.lo[2] > size[2] or tp.hi[2] < -size[3]:
-    r1 = r0 - 1
-  if c0 <= c1 and r0 <= r1 and (c1 - c0 + 1) * (r1 - r0 + 1) > MAX_CELLS:
-    tp.cut = 1
-    half = wp.static(int(MAX_CELLS**0.5) // 2)
-    cc = int(wp.floor((b.center[0] + size[0]) / dx))
-    rc = int(wp.floor((b.center[1] + size[1]) / dy))
-    c0 = wp.max(c0, cc - half)
-    c1 = wp.min(c1, cc + half - 1)
-    r0 = wp.max(r0, rc - half)
-    r1 = wp.min(r1, rc + half - 1)
-  tp.window = wp.vec4i(r0, r1, c0, c1)
-  return tp
-
-
-@wp.func
-def _window_cell(tp: TerrainPair, cell: int) -> tuple[int, int]:
-  """Grid row and column of the window's cell number ``cell`` (numbered along its rows)."""
-  ncols = tp.window[3] - tp.window[2] + 1
-  return tp.window[0] + cell // ncols, tp.window[2] + cell % ncols
-
-
-@wp.func
-def _above_cell(tp: TerrainPair, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3) -> bool:
-  """Whether B (grown by the band) stays above the cell's highest corner: nothing there to touch."""
-  return wp.max(wp.max(p00[2], p01[2]), wp.max(p10[2], p11[2])) + tp.band < tp.lo[2]
-
-
-@wp.func
-def _scale(tp: TerrainPair, dx: float, dy: float) -> float:
-  """The pair's length scale (MPR's tolerances are relative to it)."""
-  return wp.length(tp.hi - tp.lo) + dx + dy
-
-
-@wp.func
-def _round(b: Shape) -> bool:
-  """Whether B's surface is curved, so that it can touch a concave terrain edge from the side
-  (a box's or a mesh's faces meet such an edge only where they already meet a face or a
-  ridge)."""
-  return b.gtype == GeomType.SPHERE or b.gtype == GeomType.CAPSULE or b.gtype == GeomType.ELLIPSOID or (
-    b.gtype == GeomType.CYLINDER)
-
-
-@wp.func
-def _cell_jobs(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-               ms: MeshSupport, mode: int, tp: TerrainPair, cell: int) -> int:
-  """The MPR jobs of a window cell that pass the cheap tests, as a bit mask over its NJOB jobs:
-  0, 1 the prisms of its two triangles, 2 + 3 k + end feature k's points (_feature_point)."""
-  dx, dy = _cell_size(size, nrow, ncol)
-  eps = 1.0e-6 * (dx + dy + size[2])
-  band = tp.band
-  r, c = _window_cell(tp, cell)
-  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-  if _above_cell(tp, p00, p01, p10, p11):
-    return 0
-  # B's deepest point under each triangle's plane: where B stays above a plane (by more than the
-  # band), that triangle, its prism and the terrain features on it touch nothing
-  below_a = wp.dot(na, p00 - support_world(b, ms, -na, mode)) + band > 0.0
-  below_b = wp.dot(nb, p00 - support_world(b, ms, -nb, mode)) + band > 0.0
-  mask = int(0)
-  job = int(0)
-  while job < NJOB and (below_a or below_b):
-    wanted = bool(False)
-    if (job == 0 and below_a) or (job == 1 and below_b):
-      wanted = not _outside_walls(b, ms, mode, p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), band,
-                                  3)
-    elif job >= 2:
-      k = (job - 2) // 3
-      on_a = k == 0 or k == 2 or k == 3 or k == 5 or k == 7 or k == 8  # see _feature
-      on_b = k == 0 or k == 1 or k == 3 or k == 4 or k == 6 or k == 8
-      if (below_a or not on_a) and (below_b or not on_b):
-        q, wanted = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job,
-                                   p00, p01, p10, p11, b.center, eps, _round(b))
-        lo = tp.lo
-        hi = tp.hi
-        if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
-          wanted = False
-        # most such points lie outside B: B's support toward the point, from its centre, shows
-        # that with one query instead of an MPR
-        out = q - b.center
-        if wanted and wp.length(out) > 0.0:
-          out = wp.normalize(out)
-          wanted = wp.dot(q - support_world(b, ms, out, mode), out) <= band
-    if wanted:
-      mask = mask | (1 << job)
-    job += 1
-  return mask
-
-
-@wp.func
-def _job_shape(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-               tp: TerrainPair, code: int) -> Shape:
-  """The terrain part of MPR job ``code`` (cell * NJOB + job): a triangle's prism or a point."""
-  dx, dy = _cell_size(size, nrow, ncol)
-  eps = 1.0e-6 * (dx + dy + size[2])
-  job = code % NJOB
-  r, c = _window_cell(tp, code // NJOB)
-  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-  if job >= 2:
-    q, convex = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job, p00, p01,
-                          p10, p11, b.center, eps, False)
-    return _point_shape(q, tp.band)
-  return _prism_shape(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -size[3], tp.band)
-
-
-@wp.func
-def _job_mpr(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-             ms: MeshSupport, mode: int, tp: TerrainPair, code: int, tolerance: float, iterations: int,
-             refine: int) -> tuple[wp.vec4, wp.vec3]:
-  """MPR job ``code``'s answer: the contact point and depth (0 when it found none), and the normal."""
-  a = _job_shape(hfield_data, adr, nrow, ncol, size, b, tp, code)
-  dx, dy = _cell_size(size, nrow, ncol)
-  scale = _scale(tp, dx, dy)
-  res = mpr_refined(a, b, ms, mode, scale, tolerance, iterations, refine, RESTART_BEHIND)
-  depth = wp.where(res.hit != 0 and res.depth > 0.0, res.depth, 0.0)
-  return wp.vec4(res.pos[0], res.pos[1], res.pos[2], depth), res.normal
-
-
-@wp.func
-def _plane_pass(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-                ms: MeshSupport, mode: int, tp: TerrainPair, spacing: float) -> Candidates:
-  """The face contacts: B's corners against the triangle under each, then each cell's
-  triangles against B's deepest points (and a capsule's ends)."""
-  cands = empty()
-  band = tp.band
-  r0 = tp.window[0]
-  r1 = tp.window[1]
-  c0 = tp.window[2]
-  c1 = tp.window[3]
-  dx, dy = _cell_size(size, nrow, ncol)
-  ncell = (r1 - r0 + 1) * (c1 - c0 + 1)
-  ncorner = _corners(b, ms)
-  nlow = wp.where(b.gtype == GeomType.CAPSULE, 3, 1)  # plane jobs a triangle: B's deepest point, a capsule's ends
-  for item in range(ncorner + ncell):
-    corner = wp.vec3(0.0)
-    r, c = _window_cell(tp, item - ncorner)
-    if item < ncorner:
-      corner = _corner(b, ms, item)
-      c = int(wp.floor((corner[0] + size[0]) / dx))
-      r = int(wp.floor((corner[1] + size[1]) / dy))
-      if c < c0 or c > c1 or r < r0 or r > r1:
-        continue
-    p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-    if _above_cell(tp, p00, p01, p10, p11):
-      continue
-    njob = wp.where(item < ncorner, 1, 2 * nlow)
-    for job in range(njob):
-      t = job // nlow  # the triangle: (p00, p10, p11) or (p00, p11, p01)
-      p = corner
-      if item < ncorner:
-        t = wp.where((corner[1] - p00[1]) / dy >= (corner[0] - p00[0]) / dx, 0, 1)  # above the diagonal: the first
-      n = wp.where(t == 0, na, nb)
-      if item >= ncorner and job % nlow == 0:
-        p = support_world(b, ms, -n, mode)
-      elif item >= ncorner:
-        p = _capsule_end(b, job % nlow - 1, n)
-      depth = _plane_depth(p, p00, wp.where(t == 0, p10, p11), wp.where(t == 0, p11, p01), n, band)
-      if depth > 0.0:
-        cands = add_candidate(cands, p + 0.5 * depth * n, n, depth, spacing)
-  return cands
-
-
-@wp.func
-def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4,
-                    tp: TerrainPair, cands: Candidates, code: int, answer: wp.vec4, normal: wp.vec3, spacing: float,
-                    tol: float) -> Candidates:
-  """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to the
-  candidates, unless it is a prism's answer through a side wall or one the face contacts
-  already hold (_prism_answer_kept), or a point's with a normal into the terrain or between
-  two faces that hold B's contacts (_fold_answer_kept)."""
-  if answer[3] <= 0.0:
-    return cands
-  dx, dy = _cell_size(size, nrow, ncol)
-  job = code % NJOB
-  r, c = _window_cell(tp, code // NJOB)
-  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-  res = MprResult()
-  res.hit = 1
-  res.depth = answer[3]
-  res.pos = wp.vec3(answer[0], answer[1], answer[2])
-  res.normal = normal
-  if job < 2:
-    if not _prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol):
-      return cands
-  elif wp.dot(normal, na + nb) <= 0.0:
-    return cands  # B's surface normal must point away from the terrain
-  elif not _fold_answer_kept(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, job, p00, p01, p10, p11, normal,
-                             1.0e-6 * (dx + dy + size[2])):
-    return cands
-  return add_candidate(cands, res.pos, normal, res.depth, spacing)
-
-
-@wp.func
-def _bits(mask: int) -> int:
-  """How many bits of mask are set."""
-  n = int(0)
-  m = mask
-  while m != 0:
-    m = m & (m - 1)
-    n += 1
-  return n
-
-
-@wp.func
-def _queue_cell(job_out: wp.array(dtype=wp.vec2i), slot: int, tp: TerrainPair, cell: int, mask: int, n: int) -> int:
-  """Queues the jobs in a cell's mask as the pair's jobs n, n + 1, ... (those that fit in its
-  share of the queue); returns the next n."""
-  out = n
-  job = int(0)
-  while job < NJOB:
-    if ((mask >> job) & 1) == 1:
-      if out < tp.job_count:
-        job_out[tp.job_start + out] = wp.vec2i(slot, cell * NJOB + job)
-      out += 1
-    job += 1
-  return out
+# no contraction of multiply-adds into FMAs: GJK/EPA's answer for a face resting on a prism is
+# ill-conditioned (where EPA ends on the face moves by millimetres with the last bit of the input),
+# and a GPU compiler contracts the same code differently in each kernel that inlines it, so a
+# prism run in hfield_ccd and the same prism run beyond the queue in hfield_contacts gave different
+# contacts; without contraction every operation rounds as written, in each kernel and on the CPU
+# (whose code this option leaves as it was)
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 
 @wp.kernel
@@ -563,7 +296,7 @@ def hfield_mpr(
   normal_out: wp.array(dtype=wp.vec3),
 ):
   """The queued terrain MPRs, one thread a job in hfield_order's order: the contact point and
-  depth (0: none) and the normal, for hfield_contacts."""
+  depth (0: none) and the normal, for hfield_contacts (a box's or a mesh's prisms: hfield_ccd)."""
   tid = wp.tid()
   for i in range(tid, wp.min(hfield_count_in[COUNT_JOBS], hfield_job_in.shape[0]), nthread):
     j = order_in[i]
@@ -572,10 +305,59 @@ def hfield_mpr(
     worldid = pair_worldid_in[tp.cid]
     _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, pair_in[tp.cid],
                              worldid)
+    if _uses_ccd(b, job[1]):
+      continue  # hfield_ccd's
     answer, normal = _job_mpr(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
                               support_mode, tp, job[1], tolerance, iterations, refine)
     answer_out[j] = answer
     normal_out[j] = normal
+
+
+@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
+def hfield_ccd(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  geom_dataid: wp.array2d(dtype=int),
+  geom_size: wp.array2d(dtype=wp.vec3),
+  hfield_size: wp.array(dtype=wp.vec4),
+  hfield_nrow: wp.array(dtype=int),
+  hfield_ncol: wp.array(dtype=int),
+  hfield_adr: wp.array(dtype=int),
+  hfield_data: wp.array(dtype=float),
+  # Data in:
+  geom_xpos_in: wp.array2d(dtype=wp.vec3),
+  geom_xmat_in: wp.array2d(dtype=wp.mat33),
+  # In:
+  pair_in: wp.array(dtype=wp.vec2i),
+  pair_worldid_in: wp.array(dtype=int),
+  hfield_pair_in: wp.array(dtype=TerrainPair),
+  hfield_job_in: wp.array(dtype=wp.vec2i),
+  kind_end_in: wp.array(dtype=int),
+  order_in: wp.array(dtype=int),
+  ccd_in: PrismCcd,
+  nthread: int,
+  # Out:
+  overflow_out: wp.array(dtype=int),
+  answer_out: wp.array(dtype=wp.vec4),
+  normal_out: wp.array(dtype=wp.vec3),
+):
+  """The queued prisms of boxes and meshes by GJK/EPA (_job_ccd), one thread a job of those two
+  kinds in hfield_order's order, each thread on its own row of EPA memory (nthread rows)."""
+  tid = wp.tid()
+  for t in range(2):
+    kind = wp.where(t == 0, 2 * int(GeomType.BOX), 2 * int(GeomType.MESH))  # their prisms
+    for i in range(kind_end_in[kind - 1] + tid, kind_end_in[kind], nthread):
+      j = order_in[i]
+      job = hfield_job_in[j]
+      tp = hfield_pair_in[job[0]]
+      worldid = pair_worldid_in[tp.cid]
+      geoms = pair_in[tp.cid]
+      hf = geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
+      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+      answer, normal = _job_ccd(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], bgeom,
+                                geom_type[geoms[1]], tp, job[1], ccd_in, tid, worldid, overflow_out)
+      answer_out[j] = answer
+      normal_out[j] = normal
 
 
 @wp.kernel
@@ -623,15 +405,18 @@ def hfield_contacts(
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
-  hfield_count_in: wp.array(dtype=int),
   hfield_pair_in: wp.array(dtype=TerrainPair),
   hfield_job_in: wp.array(dtype=wp.vec2i),
   answer_in: wp.array(dtype=wp.vec4),
   normal_in: wp.array(dtype=wp.vec3),
+  ccd_in: PrismCcd,
   nthread: int,
   quota: ContactQuota,
   # Data out:
   overflow_out: wp.array(dtype=int),
+  # Out:
+  hfield_count_out: wp.array(dtype=int),
+  # Data out:
   contact_dist_out: wp.array(dtype=float),
   contact_pos_out: wp.array(dtype=wp.vec3),
   contact_frame_out: wp.array(dtype=wp.mat33),
@@ -653,7 +438,8 @@ def hfield_contacts(
   its MPR answers in job order (running those the queue had no room for), merged
   (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
   tid = wp.tid()
-  for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
+  row = int(-1)  # this thread's row of EPA memory, taken when it first runs GJK/EPA beyond the queue
+  for slot in range(tid, wp.min(hfield_count_out[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
     tp = hfield_pair_in[slot]
     cid = tp.cid
     geoms = pair_in[cid]
@@ -671,13 +457,18 @@ def hfield_contacts(
     spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
     cands = _plane_pass(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, spacing)
     for j in range(tp.job_start, tp.job_start + tp.job_count):
-      cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, cands, hfield_job_in[j][1], answer_in[j],
+      cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, hfield_job_in[j][1], answer_in[j],
                               normal_in[j], spacing, tolerance)
     # the jobs the queue had no room for, in order after the queued ones
     code = int(0)
     if tp.job_count > 0:
       code = hfield_job_in[tp.job_start + tp.job_count - 1][1] + 1
     left = tp.job_total - tp.job_count
+    bgeom = Geom()
+    if left > 0 and _uses_ccd(b, 0):
+      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+      if row < 0:
+        row = wp.atomic_add(hfield_count_out, COUNT_EPA_ROWS, 1)
     ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
     while left > 0 and code < ncell * NJOB:
       cell = code // NJOB
@@ -686,10 +477,11 @@ def hfield_contacts(
       job = int(0)
       while mask != 0:
         if (mask & 1) == 1:
-          answer, normal = _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
-                                    tolerance, iterations, refine)
-          cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, cands, cell * NJOB + job, answer, normal,
-                                  spacing, tolerance)
+          answer, normal = _job_answer(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
+                                       tolerance, iterations, refine, bgeom, ccd_in, row, worldid, overflow_out,
+                                       hfield_count_out)
+          cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, cell * NJOB + job, answer,
+                                  normal, spacing, tolerance)
           left -= 1
         mask = mask >> 1
         job += 1
@@ -728,21 +520,31 @@ def check_model(mjm: mujoco.MjModel) -> None:
 class Buffers:
   """The heightfield stage's per-Data buffers."""
 
-  count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind (COUNT_*)
+  count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind, EPA rows taken, ... (COUNT_*)
   pair: wp.array  # (pairs) TerrainPair
   job: wp.array  # (MPRs) the MPR queue: (index into pair, cell * NJOB + job)
   kind_next: wp.array  # (NKIND) next place of each kind of job in order
   order: wp.array  # (MPRs) the queue's jobs grouped by kind, the order hfield_mpr runs them in
   answer: wp.array  # (MPRs) each MPR's point and depth
   normal: wp.array  # (MPRs) and normal
+  ccd_rows: int  # rows of EPA memory (PrismCcd): hfield_ccd's threads (1 without GJK/EPA)
+  epa: tuple  # (vert, vert_index, face, face_pr, face_norm2, horizon), ccd_rows rows each
 
 
 def make_buffers(c, nworld: int) -> Buffers:
   """The heightfield stage's buffers for ``nworld`` worlds (``c``: the Collider)."""
   npair = max(1, nworld * c.hfield_pairs_per_world)
   nmpr = npair * c.options.hfield_mprs_per_pair if c.hfield_pairs_per_world else 1
+  rows = min(max(nmpr, npair), CCD_THREADS) if c.has_hfield_pairs and c.hfield_ccd else 1
+  # sized as MuJoCo Warp's collision_convex sizes its EPA memory
+  nvert = 10 + 2 * c.hfield_ccd_iterations
+  nface = 6 + MJ_MAX_EPAFACES * c.hfield_ccd_iterations
   return Buffers(
-    count=wp.zeros(COUNT_KIND + NKIND, dtype=int),
+    ccd_rows=rows,
+    epa=(wp.empty((rows, nvert), dtype=wp.vec3), wp.empty((rows, nvert), dtype=int), wp.empty((rows, nface), dtype=int),
+         wp.empty((rows, nface), dtype=wp.vec3), wp.empty((rows, nface), dtype=float),
+         wp.empty((rows, MJ_MAX_EPAHORIZON), dtype=int)),
+    count=wp.zeros(COUNT_CCD_AS_MPR + 1, dtype=int),
     kind_next=wp.zeros(NKIND, dtype=int),
     order=wp.zeros(nmpr, dtype=int),
     pair=wp.zeros(npair, dtype=TerrainPair),
@@ -750,6 +552,20 @@ def make_buffers(c, nworld: int) -> Buffers:
     answer=wp.zeros(nmpr, dtype=wp.vec4),
     normal=wp.zeros(nmpr, dtype=wp.vec3),
   )
+
+
+def prism_ccd(c, m, b: Buffers) -> PrismCcd:
+  """The model's meshes, MuJoCo's GJK/EPA options (MuJoCo C's ccd_iterations for GJK and EPA, as
+  MuJoCo Warp's heightfield kernel runs them) and the EPA memory of ``b``, for the kernels."""
+  ccd_in = PrismCcd()
+  for field in ("vertadr", "vertnum", "graphadr", "vert", "graph", "polynum", "polyadr", "polynormal", "polyvertadr",
+                "polyvertnum", "polyvert", "polymapadr", "polymapnum", "polymap"):
+    setattr(ccd_in, "mesh_" + field, getattr(m, "mesh_" + field))
+  ccd_in.tolerance = m.opt.ccd_tolerance
+  ccd_in.iterations = c.hfield_ccd_iterations
+  ccd_in.epa_iterations = c.hfield_ccd_iterations
+  ccd_in.vert, ccd_in.vert_index, ccd_in.face, ccd_in.face_pr, ccd_in.face_norm2, ccd_in.horizon = b.epa
+  return ccd_in
 
 
 def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
@@ -778,6 +594,7 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
     inputs=[m.geom_type, pairs.pair, b.count, b.pair, b.job, nthread_pair],
     outputs=[b.kind_next, b.order],
   )
+  ccd_in = prism_ccd(c, m, b)
   nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
   wp.launch(
     hfield_mpr,
@@ -787,6 +604,15 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
        opt.mpr_refine, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.order, nthread_mpr],
     outputs=[b.answer, b.normal],
   )
+  if c.hfield_ccd:
+    wp.launch(
+      hfield_ccd,
+      dim=b.ccd_rows,
+      inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
+      + [d.geom_xpos, d.geom_xmat, pairs.pair, pairs.pair_worldid, b.pair, b.job, b.kind_next, b.order, ccd_in,
+         b.ccd_rows],
+      outputs=[d.overflow, b.answer, b.normal],
+    )
   wp.launch(
     hfield_contacts,
     dim=nthread_pair,
@@ -797,8 +623,8 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
       m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, mode,
       opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
       opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid,
-      pairs.pair_worldid, b.count, b.pair, b.job, b.answer, b.normal,
+      pairs.pair_worldid, b.pair, b.job, b.answer, b.normal, ccd_in,
       nthread_pair, quota,
     ],
-    outputs=[d.overflow] + contact_outputs(d),
+    outputs=[d.overflow, b.count] + contact_outputs(d),
   )

@@ -7,7 +7,9 @@ device functions for the heightfield stage (heightfield.py); it launches nothing
 """
 
 import warp as wp
+from mujoco_warp._src.collision_core import Geom
 from mujoco_warp._src.types import GeomType
+from mujoco_warp._src.types import mat63
 
 from mjx_supportfield.candidates import Candidates
 from mjx_supportfield.candidates import row
@@ -84,6 +86,23 @@ def _prism_shape(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, bottom: float, band: flo
 
 
 @wp.func
+def _prism_geom(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, bottom: float) -> Geom:
+  """The prism under triangle (v0, v1, v2) down to z = bottom as MuJoCo Warp's GJK/EPA takes it
+  (collision_convex's heightfield kernel): rows 0-2 the base, 3-5 the top, at the frame's origin."""
+  g = Geom()
+  g.pos = wp.vec3(0.0)
+  g.rot = wp.identity(n=3, dtype=float)
+  prism = mat63()
+  for i in range(3):
+    v = wp.where(i == 0, v0, wp.where(i == 1, v1, v2))
+    prism[i] = wp.vec3(v[0], v[1], bottom)
+    prism[i + 3] = v
+  g.polyvert = prism
+  g.index = -1
+  return g
+
+
+@wp.func
 def _outside_walls(b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, band: float,
                    nwall: int) -> bool:
   """Whether B (grown by band) lies wholly outside one of the prism's nwall = 3 vertical side
@@ -104,19 +123,26 @@ def _outside_walls(b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec
 
 
 @wp.func
-def _prism_answer_kept(c: Candidates, res: MprResult, n: wp.vec3, v0: wp.vec3, scale: float, tol: float) -> bool:
+def _prism_answer_kept(c: Candidates, res: MprResult, n: wp.vec3, v0: wp.vec3, scale: float, tol: float,
+                       one_per_prism: bool) -> bool:
   """Whether a prism's MPR answer is an edge of B dipping into the top face (normal n through
   v0): the prism's witness point lies on the top triangle (answers through the side walls,
-  which are inside the terrain, are dropped) and no plane-pass candidate with its normal is
-  as deep."""
+  which are inside the terrain, are dropped) and no plane-pass candidate with its normal is as
+  deep. With ``one_per_prism`` (GJK/EPA's answers for a box or a mesh, whose points MuJoCo C
+  keeps one a prism) one such candidate is allowed: it is B's single deepest point under the
+  triangle's plane, and EPA's point lies elsewhere on the part of B resting there; two or more
+  are corners of a face lying flat on the plane, which they already span."""
   if wp.dot(res.normal, n) < 0.5:
     return False
   witness = res.pos + 0.5 * res.depth * res.normal
   if wp.dot(n, witness - v0) < -1.0e-6 * scale:
     return False
+  allowed = wp.where(one_per_prism, 1, 0)
   for k in range(c.n):
     if wp.dot(row(c.normal, k), res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
-      return False
+      allowed -= 1
+      if allowed < 0:
+        return False
   return True
 
 

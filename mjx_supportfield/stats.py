@@ -25,6 +25,8 @@ class CollisionStats(dict):
     deep_pairs_reused: deep answers that kept the verdict of the pair's last check instead of a
       new one (deep_pairs.py), not counted in deep_pairs; the check ran on deep_pairs minus
       deep_pairs_unchecked.
+    hfield_ccd_as_mpr: prisms of boxes and meshes on a heightfield that found no row of GJK/EPA
+      memory left and ran MPR instead (a contact of the prism's deepest point, not EPA's).
     path: "plugin", or "stock" where MuJoCo Warp's own collision stage ran
       (``Options.stock_for_analytic_models``); then ``pairs`` is its pair count, the per-world
       lists are empty and the plugin's other counters 0.
@@ -76,6 +78,8 @@ class CollisionStats(dict):
     else:
       lines.append("worlds with NaN or inf geom poses: 0")
     lines.append(f"warm-start misses: {self['warm_start_misses']}")
+    if self.get("hfield_ccd_as_mpr"):
+      lines.append(f"heightfield prisms without GJK/EPA memory (ran MPR): {self['hfield_ccd_as_mpr']}")
     if self.get("deep_pairs_unchecked"):
       lines.append(f"deep pairs beyond the check's queue: {self['deep_pairs_unchecked']} of {self['deep_pairs']} "
                    "(they kept MPR's answer)")
@@ -110,7 +114,7 @@ class CollisionStats(dict):
 # every counter at rest: before the first collision, and those the stock path leaves untouched
 _NO_COUNTS = {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
               "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
-              "hfield_mprs_unqueued": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0,
+              "hfield_mprs_unqueued": 0, "hfield_ccd_as_mpr": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0,
               "deep_pairs_reused": 0}
 
 
@@ -122,7 +126,8 @@ def collect(c, d, st) -> CollisionStats:
                            "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax)})
   if st is None:
     return CollisionStats({**_NO_COUNTS, "path": "plugin"})
-  from mjx_supportfield.heightfield import COUNT_UNQUEUED  # the heightfield module builds kernels on import
+  from mjx_supportfield.heightfield import COUNT_CCD_AS_MPR  # the heightfield module builds kernels on import
+  from mjx_supportfield.heightfield import COUNT_UNQUEUED
 
   broad = st.broad
   return CollisionStats({
@@ -135,6 +140,7 @@ def collect(c, d, st) -> CollisionStats:
     "warm_start_misses": int(st.warm.misses.numpy()[0]) if c.options.warm_start else 0,
     # terrain MPRs that found the heightfield queue full and ran in their pair's thread
     "hfield_mprs_unqueued": int(st.hfield.count.numpy()[COUNT_UNQUEUED]),
+    "hfield_ccd_as_mpr": int(st.hfield.count.numpy()[COUNT_CCD_AS_MPR]),
     **_deep_pairs(st),
   })
 

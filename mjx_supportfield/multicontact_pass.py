@@ -12,13 +12,12 @@ writes each tilted pair's contacts. This module owns those kernels and their hos
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
-from mujoco_warp._src.collision_core import write_contact
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
-from mjx_supportfield.contact_quota import world_rows
+from mjx_supportfield.contact_quota import write_row
 from mjx_supportfield.faceclip import TILTS
 from mjx_supportfield.faceclip import clip_faces
 from mjx_supportfield.faceclip import face_pair
@@ -273,25 +272,16 @@ def manifold_kernel(
     ref_geom = geoms[wp.where(found.ref_is_b, 1, 0)]
     rot = geom_xmat_in[worldid, ref_geom]
     shift = geom_xpos_in[worldid, ref_geom]
-    # the world's contact rows (Options.contacts_per_world), made once the clipping is done
-    (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-     rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
-     rows_nacon) = world_rows(
-      quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-      contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-      contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-      contact_adhesion_out, nacon_out,
-    )
     for k in range(found.n):
       pos = rot @ manifold_pos(found, k) + shift
       if k == found.first:
         pos = res.pos - 0.5 * band * res.normal
-      write_contact(
-        limit, k, manifold_dist(found, k), pos, frame, margin, gap,
-        condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, rows_dist,
-        rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-        rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address,
-        rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
+      write_row(
+        quota, worldid, naconmax_in, k, manifold_dist(found, k), pos, frame, margin, gap, condim, friction, solref,
+        solreffriction, solimp, adhesion, geoms, pairid_in[cid], contact_dist_out, contact_pos_out, contact_frame_out,
+        contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
+        contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
+        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
       )
 
 

@@ -17,7 +17,6 @@ import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.collision_core import geom_collision_pair
-from mujoco_warp._src.collision_core import write_contact
 from mujoco_warp._src.collision_primitive import _PRIMITIVE_COLLISIONS
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
@@ -26,7 +25,8 @@ from mujoco_warp._src.types import vec5
 from mjx_supportfield import warmstart
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
-from mjx_supportfield.contact_quota import world_rows
+from mjx_supportfield.contact_quota import rows
+from mjx_supportfield.contact_quota import write_row
 from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
@@ -87,8 +87,7 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
   pair's contact parameters and poses are read once, then its type picks the routine.
 
   ``per_world`` (Options.contacts_per_world > 0): the routines write through views of each
-  world's rows (contact_quota.world_rows). Without it they get the contact arrays themselves:
-  the views would hold fifteen pointers in registers through every routine for nothing."""
+  world's rows; without it, into the contact arrays themselves (contact_quota.rows)."""
   funcs = [_PRIMITIVE_COLLISIONS[t] for t in pair_types]
 
   @wp.kernel(module="unique", enable_backward=False)
@@ -165,24 +164,14 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
       type1 = geom_type[geoms[0]]
       type2 = geom_type[geoms[1]]
       worldid = pair_worldid_in[cid]
-      if wp.static(per_world):
-        (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-         rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
-         rows_geomcollisionid, rows_adhesion, rows_nacon) = world_rows(
-          quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-          contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-          contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out,
-          contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
-        )
-      else:
-        (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-         rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
-         rows_geomcollisionid, rows_adhesion, rows_nacon) = (
-          naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-          contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-          contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out,
-          contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
-        )
+      (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+       rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid,
+       rows_adhesion, rows_nacon) = wp.static(rows(per_world))(
+        quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+        contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+        contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+        contact_adhesion_out, nacon_out,
+      )
       # the parameters and poses read once, before the routine's branch, as stock MuJoCo Warp's
       # kernel does: read inside each branch, a warp of mixed pair types ran them once per type
       _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
@@ -310,14 +299,6 @@ def write_pair_contacts(
 ):
   """Writes a pair's contacts: MPR's point (when kept, see keep_first), then the patch's points,
   all with MPR's normal; the margin band comes off depth and position."""
-  (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-   rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
-   rows_nacon) = world_rows(
-    quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-    contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-    contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-    contact_adhesion_out, nacon_out,
-  )
   first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, min_spacing, tol_abs), -1, 0), -1)
   count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
   frame = make_frame(res.normal)
@@ -328,12 +309,12 @@ def write_pair_contacts(
     if j >= 0:
       depth = extra.depth[j]
       pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
-    write_contact(
-      limit, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim, friction, solref,
-      solreffriction, solimp, adhesion, geoms, pairid, worldid, rows_dist, rows_pos, rows_frame,
-      rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-      rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid,
-      rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
+    write_row(
+      quota, worldid, naconmax_in, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim,
+      friction, solref, solreffriction, solimp, adhesion, geoms, pairid, contact_dist_out, contact_pos_out,
+      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
     )
 
 

@@ -30,10 +30,12 @@ from mjx_supportfield.contact_quota import write_row
 from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import MprSettings
 from mjx_supportfield.mpr import apart_along_centres
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
+from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.multicontact import NPERTURB
 from mjx_supportfield.multicontact import TILT_GROWTH
 from mjx_supportfield.multicontact import Patch
@@ -464,9 +466,7 @@ def convex_kernel(use_gjk: bool):
     # In:
     ms: MeshSupport,
     support_mode: int,
-    tolerance: float,
-    iterations: int,
-    refine: int,
+    mpr_options: MprSettings,
     max_contacts: int,
     mc_perturbation: float,
     sdf: MeshSdf,
@@ -561,7 +561,7 @@ def convex_kernel(use_gjk: bool):
       last = wp.vec4(0.0)
       checked = int(warmstart.NEVER)
       if wp.static(use_gjk):
-        res = gjk_epa(a, b, ms, support_mode, scale, tolerance, iterations)
+        res = gjk_epa(a, b, ms, support_mode, scale, mpr_options.tolerance, mpr_options.iterations)
       else:
         if warm_start:
           last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
@@ -576,7 +576,8 @@ def convex_kernel(use_gjk: bool):
           q0 = interior_point(a, b, scale)
           if attempt == 0 and last[3] > 0.0:
             q0 = behind_origin(a, b, ms, support_mode, wp.vec3(last[0], last[1], last[2]), last[3], scale, BEHIND)
-          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine, BEHIND)
+          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, mpr_options.tolerance, mpr_options.iterations,
+                                 mpr_options.refine, BEHIND)
       if res.hit == 0:
         continue
       extra = Patch()
@@ -724,7 +725,7 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
         m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
         m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
         m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-        SUPPORT_MODE_ID[opt.support_mode], opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
+        SUPPORT_MODE_ID[opt.support_mode], settings_of(opt),
         opt.max_contacts_per_pair if opt.multi_contact else 1, opt.mc_perturbation,
         c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
         warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,

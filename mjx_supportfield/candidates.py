@@ -3,12 +3,11 @@ deepest point plus the ones farthest from those chosen are written (heightfields
 meshes); a source may ask for every candidate deeper than a depth (``Candidates.keep``) too."""
 
 import warp as wp
-from mujoco_warp._src.collision_core import write_contact
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.contact_quota import ContactQuota
-from mjx_supportfield.contact_quota import world_rows
+from mjx_supportfield.contact_quota import write_row
 from mjx_supportfield.types import FAR
 
 NCANDIDATE = 32  # room for contact candidates per pair before the final choice (the most any source asks)
@@ -164,27 +163,19 @@ def write_candidates(
 ):
   """Writes the candidates that choose picks (given in a frame: world = origin + rot @ local) as
   contacts with MuJoCo Warp's write_contact; the margin band comes off the depth and the position."""
-  (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-   rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
-   rows_nacon) = world_rows(
-    quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-    contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-    contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-    contact_adhesion_out, nacon_out,
-  )
   chosen = choose(c, max_contacts)
   count = int(0)
   for k in range(NCANDIDATE):
     if chosen[k] >= 0:
       count += 1
-  for k in range(count):  # a runtime bound, so the loop is not unrolled: one write_contact call site
+  for k in range(count):  # a runtime bound, so the loop is not unrolled: one write_row call site
     i = chosen[k]
     normal = rot @ row(c.normal, i)
     pos = origin + rot @ row(c.pos, i)
-    write_contact(
-      limit, k, band - c.depth[i], pos - 0.5 * band * normal, make_frame(normal), margin, gap, condim,
-      friction, solref, solreffriction, solimp, adhesion, geoms, pairid, worldid, rows_dist,
-      rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-      rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address,
-      rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
+    write_row(
+      quota, worldid, naconmax_in, k, band - c.depth[i], pos - 0.5 * band * normal, make_frame(normal), margin, gap,
+      condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid, contact_dist_out, contact_pos_out,
+      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
     )

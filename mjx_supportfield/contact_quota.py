@@ -9,7 +9,11 @@ routines, which index from 0 and stop at the limit they are given, stay unchange
 its quota loses its own contacts only. After the narrow phase the rows are packed to the front
 (world by world, each world's rows in the order they were written) and ``d.nacon`` counts them.
 
-With N = 0 the views are the whole arrays and the counter is ``d.nacon``: one code path.
+Every writer picks its rows here, in one of two ways. A writer of single rows calls
+``write_row``: with N = 0 it writes the contact arrays themselves, else its world's views. A kernel
+that hands the rows to MuJoCo Warp's routines (they call write_contact themselves) is built per
+quota and takes its rows from ``rows(per_world)``, a choice made when the kernel is built: without a
+quota the routines get the arrays themselves, not fifteen views held in registers through them.
 
 This module owns the quota's kernels, its per-Data buffers (``make_buffers``) and its host entries
 (``start`` before the writers, ``pack`` after them), and names the contact fields the writers take.
@@ -18,6 +22,7 @@ This module owns the quota's kernels, its per-Data buffers (``make_buffers``) an
 import dataclasses
 
 import warp as wp
+from mujoco_warp._src.collision_core import write_contact
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import vec5
 
@@ -101,6 +106,105 @@ def world_rows(
     wp.array(ptr=_offset(contact_geomcollisionid_out.ptr, start, _INT), shape=(n,), dtype=int),
     wp.array(ptr=_offset(contact_adhesion_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
     wp.array(ptr=counter, shape=(1,), dtype=int),
+  )
+
+
+@wp.func
+def shared_rows(
+  quota: ContactQuota,
+  worldid: int,
+  naconmax_in: int,
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """world_rows without a quota: the row limit, the contact arrays themselves and ``d.nacon``."""
+  return (
+    naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out,
+    contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out,
+    contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out,
+    nacon_out,
+  )
+
+
+def rows(per_world: bool):
+  """The rows of a kernel built per quota (call it with ``wp.static``): world_rows when
+  Options.contacts_per_world > 0, else shared_rows, the contact arrays themselves."""
+  return world_rows if per_world else shared_rows
+
+
+@wp.func
+def write_row(
+  quota: ContactQuota,
+  worldid: int,
+  naconmax_in: int,
+  id_: int,
+  dist: float,
+  pos: wp.vec3,
+  frame: wp.mat33,
+  margin: float,
+  gap: float,
+  condim: int,
+  friction: vec5,
+  solref: wp.vec2,
+  solreffriction: wp.vec2,
+  solimp: vec5,
+  adhesion: float,
+  geoms: wp.vec2i,
+  pairid: wp.vec2i,
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+) -> int:
+  """MuJoCo Warp's write_contact of one contact of world ``worldid`` into the rows it may write:
+  without a quota the contact arrays themselves (no views made), else its world's rows."""
+  if quota.per_world == 0:
+    return write_contact(
+      naconmax_in, id_, dist, pos, frame, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion,
+      geoms, pairid, worldid, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+      contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+      contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+      contact_adhesion_out, nacon_out,
+    )
+  (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+   rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
+   rows_nacon) = world_rows(
+    quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+    contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+    contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+    contact_adhesion_out, nacon_out,
+  )
+  return write_contact(
+    limit, id_, dist, pos, frame, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion, geoms,
+    pairid, worldid, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
+    rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
+    rows_geomcollisionid, rows_adhesion, rows_nacon,
   )
 
 

@@ -43,8 +43,10 @@ from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import MprSettings
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import mpr_refined_from
+from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.multicontact import Patch
 from mjx_supportfield.narrowphase import GRID_THREADS
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
@@ -343,18 +345,18 @@ def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec
 
 @wp.func
 def checked_answer(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, res: MprResult, scale: float, tol: float, iterations: int,
-  refine: int,
+  a: Shape, b: Shape, ms: MeshSupport, mode: int, res: MprResult, scale: float, mpr_options: MprSettings
 ) -> MprResult:
   """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
   (least_overlap) when that comes out shallower."""
   along = overlap_along(a, b, ms, mode, res.normal)
   least = least_overlap(a, b, ms, mode, res.normal, scale)
+  tol = mpr_options.tolerance
   if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
     return res
   u = wp.vec3(least[0], least[1], least[2])
   r = mpr_refined_from(a, b, ms, mode, behind_origin(a, b, ms, mode, u, least[3], scale, BEHIND), scale, tol,
-                       iterations, refine, BEHIND)
+                       mpr_options.iterations, mpr_options.refine, BEHIND)
   if r.hit != 0 and r.depth < res.depth - tol * scale:
     return r
   return res
@@ -391,9 +393,7 @@ def deep_pair_kernel(
   # In:
   ms: MeshSupport,
   support_mode: int,
-  tolerance: float,
-  iterations: int,
-  refine: int,
+  mpr_options: MprSettings,
   max_contacts: int,
   mc_perturbation: float,
   warm_start: int,
@@ -456,7 +456,7 @@ def deep_pair_kernel(
     res.normal = wp.vec3(queued[0], queued[1], queued[2])
     res.depth = queued[3]
     res.pos = deep_pos[s]
-    res = checked_answer(a, b, ms, support_mode, res, scale, tolerance, iterations, refine)
+    res = checked_answer(a, b, ms, support_mode, res, scale, mpr_options)
     value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
     if warm_start:
       key = geoms[0] * geom_type.shape[0] + geoms[1]
@@ -496,7 +496,7 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
       m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
       m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
       m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, SUPPORT_MODE_ID[opt.support_mode],
-      opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine, opt.max_contacts_per_pair if opt.multi_contact else 1,
+      settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
       opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
       b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
     ],

@@ -72,6 +72,8 @@ from mujoco_warp._src.types import vec5
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
+from mjx_supportfield.mpr import MprSettings
+from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.narrowphase import GRID_THREADS
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
 from mjx_supportfield.types import SUPPORT_MODE_ID
@@ -281,9 +283,7 @@ def hfield_mpr(
   # In:
   ms: MeshSupport,
   support_mode: int,
-  tolerance: float,
-  iterations: int,
-  refine: int,
+  mpr_options: MprSettings,
   pair_in: wp.array(dtype=wp.vec2i),
   pair_worldid_in: wp.array(dtype=int),
   hfield_count_in: wp.array(dtype=int),
@@ -308,7 +308,7 @@ def hfield_mpr(
     if _uses_ccd(b, job[1]):
       continue  # hfield_ccd's
     answer, normal = _job_mpr(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
-                              support_mode, tp, job[1], tolerance, iterations, refine)
+                              support_mode, tp, job[1], mpr_options)
     answer_out[j] = answer
     normal_out[j] = normal
 
@@ -397,9 +397,7 @@ def hfield_contacts(
   # In:
   ms: MeshSupport,
   support_mode: int,
-  tolerance: float,
-  iterations: int,
-  refine: int,
+  mpr_options: MprSettings,
   max_contacts: int,
   mc_tolerance: float,
   pair_in: wp.array(dtype=wp.vec2i),
@@ -458,7 +456,7 @@ def hfield_contacts(
     cands = _plane_pass(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, spacing)
     for j in range(tp.job_start, tp.job_start + tp.job_count):
       cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, hfield_job_in[j][1], answer_in[j],
-                              normal_in[j], spacing, tolerance)
+                              normal_in[j], spacing, mpr_options.tolerance)
     # the jobs the queue had no room for, in order after the queued ones
     code = int(0)
     if tp.job_count > 0:
@@ -478,10 +476,9 @@ def hfield_contacts(
       while mask != 0:
         if (mask & 1) == 1:
           answer, normal = _job_answer(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
-                                       tolerance, iterations, refine, bgeom, ccd_in, row, worldid, overflow_out,
-                                       hfield_count_out)
+                                       mpr_options, bgeom, ccd_in, row, worldid, overflow_out, hfield_count_out)
           cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, cell * NJOB + job, answer,
-                                  normal, spacing, tolerance)
+                                  normal, spacing, mpr_options.tolerance)
           left -= 1
         mask = mask >> 1
         job += 1
@@ -600,8 +597,8 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
     hfield_mpr,
     dim=nthread_mpr,
     inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
-    + [d.geom_xpos, d.geom_xmat, c.mesh_support, mode, opt.mpr_tolerance, opt.mpr_iterations,
-       opt.mpr_refine, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.order, nthread_mpr],
+    + [d.geom_xpos, d.geom_xmat, c.mesh_support, mode, settings_of(opt), pairs.pair, pairs.pair_worldid, b.count,
+       b.pair, b.job, b.order, nthread_mpr],
     outputs=[b.answer, b.normal],
   )
   if c.hfield_ccd:
@@ -621,8 +618,7 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
       m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
       m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
       m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, mode,
-      opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
-      opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid,
+      settings_of(opt), opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid,
       pairs.pair_worldid, b.pair, b.job, b.answer, b.normal, ccd_in,
       nthread_pair, quota,
     ],

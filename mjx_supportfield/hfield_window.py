@@ -34,6 +34,7 @@ from mjx_supportfield.hfield_cells import _prism_answer_kept
 from mjx_supportfield.hfield_cells import _prism_geom
 from mjx_supportfield.hfield_cells import _prism_shape
 from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import MprSettings
 from mjx_supportfield.mpr import mpr_refined
 from mjx_supportfield.routing import NGEOMTYPE
 from mjx_supportfield.shapes import posed_shape
@@ -261,13 +262,14 @@ def _job_shape(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: in
 
 @wp.func
 def _job_mpr(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-             ms: MeshSupport, mode: int, tp: TerrainPair, code: int, tolerance: float, iterations: int,
-             refine: int) -> tuple[wp.vec4, wp.vec3]:
+             ms: MeshSupport, mode: int, tp: TerrainPair, code: int, mpr_options: MprSettings
+             ) -> tuple[wp.vec4, wp.vec3]:
   """MPR job ``code``'s answer: the contact point and depth (0 when it found none), and the normal."""
   a = _job_shape(hfield_data, adr, nrow, ncol, size, b, tp, code)
   dx, dy = _cell_size(size, nrow, ncol)
   scale = _scale(tp, dx, dy)
-  res = mpr_refined(a, b, ms, mode, scale, tolerance, iterations, refine, RESTART_BEHIND)
+  res = mpr_refined(a, b, ms, mode, scale, mpr_options.tolerance, mpr_options.iterations, mpr_options.refine,
+                    RESTART_BEHIND)
   depth = wp.where(res.hit != 0 and res.depth > 0.0, res.depth, 0.0)
   return wp.vec4(res.pos[0], res.pos[1], res.pos[2], depth), res.normal
 
@@ -329,8 +331,8 @@ def _job_ccd(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
 
 @wp.func
 def _job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-                ms: MeshSupport, mode: int, tp: TerrainPair, code: int, tolerance: float, iterations: int,
-                refine: int, bgeom: Geom, ccd_in: PrismCcd, row: int, worldid: int, overflow_out: wp.array(dtype=int),
+                ms: MeshSupport, mode: int, tp: TerrainPair, code: int, mpr_options: MprSettings, bgeom: Geom,
+                ccd_in: PrismCcd, row: int, worldid: int, overflow_out: wp.array(dtype=int),
                 count_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
   """MPR job ``code``'s answer (_job_mpr), or GJK/EPA's for a prism against a box or a mesh on EPA
   memory ``row`` (MPR's when no row was left: counted in COUNT_CCD_AS_MPR)."""
@@ -339,7 +341,7 @@ def _job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: i
       return _job_ccd(hfield_data, adr, nrow, ncol, size, bgeom, b.gtype, tp, code, ccd_in, row, worldid,
                       overflow_out)
     wp.atomic_add(count_out, COUNT_CCD_AS_MPR, 1)
-  return _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, mode, tp, code, tolerance, iterations, refine)
+  return _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, mode, tp, code, mpr_options)
 
 
 @wp.func

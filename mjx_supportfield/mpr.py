@@ -5,11 +5,35 @@ vertex keeps the two support points it came from so the contact position can be
 interpolated on both surfaces.
 """
 
+import functools
+
 import warp as wp
 
 from mjx_supportfield.support import support_world
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+
+
+@wp.struct
+class MprSettings:
+  """MPR's options (Options.mpr_*) as the kernels take them, one argument instead of three."""
+
+  tolerance: float  # convergence tolerance, relative to the pair's length scale
+  iterations: int  # cap of each MPR (or GJK / EPA) loop
+  refine: int  # reruns along the last normal (mpr_refined_from)
+
+
+@functools.lru_cache(maxsize=None)
+def settings(tolerance: float, iterations: int, refine: int) -> MprSettings:
+  """The MprSettings of these options, made once and reused by every launch."""
+  s = MprSettings()
+  s.tolerance, s.iterations, s.refine = tolerance, iterations, refine
+  return s
+
+
+def settings_of(options) -> MprSettings:
+  """The MprSettings of an Options."""
+  return settings(options.mpr_tolerance, options.mpr_iterations, options.mpr_refine)
 
 
 @wp.struct

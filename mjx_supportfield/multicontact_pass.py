@@ -12,19 +12,20 @@ writes each tilted pair's contacts. This module owns those kernels and their hos
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
-from mujoco_warp._src.collision_core import write_contact
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
-from mjx_supportfield.contact_quota import world_rows
+from mjx_supportfield.contact_quota import write_row
 from mjx_supportfield.faceclip import TILTS
 from mjx_supportfield.faceclip import clip_faces
 from mjx_supportfield.faceclip import face_pair
 from mjx_supportfield.faceclip import manifold_dist
 from mjx_supportfield.faceclip import manifold_pos
 from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import MprSettings
+from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.multicontact import NPERTURB
 from mjx_supportfield.multicontact import UNKNOWN
 from mjx_supportfield.multicontact import perturbed_contacts
@@ -273,25 +274,16 @@ def manifold_kernel(
     ref_geom = geoms[wp.where(found.ref_is_b, 1, 0)]
     rot = geom_xmat_in[worldid, ref_geom]
     shift = geom_xpos_in[worldid, ref_geom]
-    # the world's contact rows (Options.contacts_per_world), made once the clipping is done
-    (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-     rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
-     rows_nacon) = world_rows(
-      quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-      contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-      contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-      contact_adhesion_out, nacon_out,
-    )
     for k in range(found.n):
       pos = rot @ manifold_pos(found, k) + shift
       if k == found.first:
         pos = res.pos - 0.5 * band * res.normal
-      write_contact(
-        limit, k, manifold_dist(found, k), pos, frame, margin, gap,
-        condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, rows_dist,
-        rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-        rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address,
-        rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
+      write_row(
+        quota, worldid, naconmax_in, k, manifold_dist(found, k), pos, frame, margin, gap, condim, friction, solref,
+        solreffriction, solimp, adhesion, geoms, pairid_in[cid], contact_dist_out, contact_pos_out, contact_frame_out,
+        contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
+        contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
+        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
       )
 
 
@@ -365,8 +357,7 @@ def tilt_mpr_kernel(
   # In:
   ms: MeshSupport,
   support_mode: int,
-  tolerance: float,
-  iterations: int,
+  mpr_options: MprSettings,
   mc_perturbation: float,
   pair_in: wp.array(dtype=wp.vec2i),
   pairid_in: wp.array(dtype=wp.vec2i),
@@ -393,7 +384,8 @@ def tilt_mpr_kernel(
                                          pair_margin, pair_gap, geom_xpos_in, geom_xmat_in, ms, mc_perturbation,
                                          pair_in, pairid_in, pair_worldid_in, patch_pair, patch_result, patch_pos, i,
                                          j % nattempt)
-    tilt_result[q, j % nattempt] = tilt_mpr(a, b, ms, support_mode, res, scale, tolerance, iterations, rot)
+    tilt_result[q, j % nattempt] = tilt_mpr(a, b, ms, support_mode, res, scale, mpr_options.tolerance,
+                                            mpr_options.iterations, rot)
 
 
 @wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
@@ -428,8 +420,7 @@ def patch_kernel(
   # In:
   ms: MeshSupport,
   support_mode: int,
-  tolerance: float,
-  iterations: int,
+  mpr_options: MprSettings,
   max_contacts: int,
   mc_perturbation: float,
   mc_tolerance: float,
@@ -489,11 +480,12 @@ def patch_kernel(
     # duplicates: closer than mc_tolerance x the smaller geom's box size
     ab = worldid % geom_aabb.shape[0]
     size = 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
-    extra = perturbed_contacts(a, b, ms, support_mode, res, scale, tolerance, iterations, mc_perturbation,
-                               mc_tolerance * size, tilt_result, wp.where(q < tilt_result.shape[0], q, -1))
+    extra = perturbed_contacts(a, b, ms, support_mode, res, scale, mpr_options.tolerance, mpr_options.iterations,
+                               mc_perturbation, mc_tolerance * size, tilt_result,
+                               wp.where(q < tilt_result.shape[0], q, -1))
     write_pair_contacts(
-      res, extra, mc_tolerance * size, tolerance * scale, max_contacts, band, naconmax_in, margin, gap, condim,
-      friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
+      res, extra, mc_tolerance * size, mpr_options.tolerance * scale, max_contacts, band, naconmax_in, margin, gap,
+      condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
       contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
       contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
       contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
@@ -547,7 +539,7 @@ def launch_multicontact(c, m, d, pairs, b: Buffers, quota: ContactQuota):
   wp.launch(
     tilt_mpr_kernel,
     dim=nthread_tilt,
-    inputs=tilt_model + [opt.mpr_tolerance, opt.mpr_iterations, opt.mc_perturbation,
+    inputs=tilt_model + [settings_of(opt), opt.mc_perturbation,
                          pair, pairid, pair_worldid, b.tilt_pair, b.patch_pair, b.patch_result,
                          b.patch_pos, b.tilt_count, b.tilt_queue, nthread_tilt],
     outputs=[b.tilt_result],
@@ -560,7 +552,7 @@ def launch_multicontact(c, m, d, pairs, b: Buffers, quota: ContactQuota):
       m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
       m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
       m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-      mode, opt.mpr_tolerance, opt.mpr_iterations,
+      mode, settings_of(opt),
       opt.max_contacts_per_pair, opt.mc_perturbation, opt.mc_tolerance, pair,
       pairid, pair_worldid, b.tilt_pair_count, b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos,
       b.tilt_result, nthread, quota,

@@ -17,7 +17,6 @@ import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.collision_core import geom_collision_pair
-from mujoco_warp._src.collision_core import write_contact
 from mujoco_warp._src.collision_primitive import _PRIMITIVE_COLLISIONS
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
@@ -26,14 +25,17 @@ from mujoco_warp._src.types import vec5
 from mjx_supportfield import warmstart
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
-from mjx_supportfield.contact_quota import world_rows
+from mjx_supportfield.contact_quota import rows
+from mjx_supportfield.contact_quota import write_row
 from mjx_supportfield.gjk import gjk_epa
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
+from mjx_supportfield.mpr import MprSettings
 from mjx_supportfield.mpr import apart_along_centres
 from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
 from mjx_supportfield.mpr import mpr_refined_from
+from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.multicontact import NPERTURB
 from mjx_supportfield.multicontact import TILT_GROWTH
 from mjx_supportfield.multicontact import Patch
@@ -87,8 +89,7 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
   pair's contact parameters and poses are read once, then its type picks the routine.
 
   ``per_world`` (Options.contacts_per_world > 0): the routines write through views of each
-  world's rows (contact_quota.world_rows). Without it they get the contact arrays themselves:
-  the views would hold fifteen pointers in registers through every routine for nothing."""
+  world's rows; without it, into the contact arrays themselves (contact_quota.rows)."""
   funcs = [_PRIMITIVE_COLLISIONS[t] for t in pair_types]
 
   @wp.kernel(module="unique", enable_backward=False)
@@ -165,24 +166,14 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
       type1 = geom_type[geoms[0]]
       type2 = geom_type[geoms[1]]
       worldid = pair_worldid_in[cid]
-      if wp.static(per_world):
-        (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-         rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
-         rows_geomcollisionid, rows_adhesion, rows_nacon) = world_rows(
-          quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-          contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-          contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out,
-          contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
-        )
-      else:
-        (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
-         rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
-         rows_geomcollisionid, rows_adhesion, rows_nacon) = (
-          naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-          contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-          contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out,
-          contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
-        )
+      (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+       rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid,
+       rows_adhesion, rows_nacon) = wp.static(rows(per_world))(
+        quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+        contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+        contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+        contact_adhesion_out, nacon_out,
+      )
       # the parameters and poses read once, before the routine's branch, as stock MuJoCo Warp's
       # kernel does: read inside each branch, a warp of mixed pair types ran them once per type
       _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
@@ -310,14 +301,6 @@ def write_pair_contacts(
 ):
   """Writes a pair's contacts: MPR's point (when kept, see keep_first), then the patch's points,
   all with MPR's normal; the margin band comes off depth and position."""
-  (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-   rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
-   rows_nacon) = world_rows(
-    quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-    contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-    contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-    contact_adhesion_out, nacon_out,
-  )
   first = wp.where(extra.n > 0, wp.where(keep_first(res, extra, min_spacing, tol_abs), -1, 0), -1)
   count = wp.min(wp.max(extra.n, 0) - first, max_contacts)
   frame = make_frame(res.normal)
@@ -328,12 +311,12 @@ def write_pair_contacts(
     if j >= 0:
       depth = extra.depth[j]
       pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
-    write_contact(
-      limit, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim, friction, solref,
-      solreffriction, solimp, adhesion, geoms, pairid, worldid, rows_dist, rows_pos, rows_frame,
-      rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
-      rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid,
-      rows_type, rows_geomcollisionid, rows_adhesion, rows_nacon,
+    write_row(
+      quota, worldid, naconmax_in, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim,
+      friction, solref, solreffriction, solimp, adhesion, geoms, pairid, contact_dist_out, contact_pos_out,
+      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
     )
 
 
@@ -483,9 +466,7 @@ def convex_kernel(use_gjk: bool):
     # In:
     ms: MeshSupport,
     support_mode: int,
-    tolerance: float,
-    iterations: int,
-    refine: int,
+    mpr_options: MprSettings,
     max_contacts: int,
     mc_perturbation: float,
     sdf: MeshSdf,
@@ -580,7 +561,7 @@ def convex_kernel(use_gjk: bool):
       last = wp.vec4(0.0)
       checked = int(warmstart.NEVER)
       if wp.static(use_gjk):
-        res = gjk_epa(a, b, ms, support_mode, scale, tolerance, iterations)
+        res = gjk_epa(a, b, ms, support_mode, scale, mpr_options.tolerance, mpr_options.iterations)
       else:
         if warm_start:
           last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
@@ -595,7 +576,8 @@ def convex_kernel(use_gjk: bool):
           q0 = interior_point(a, b, scale)
           if attempt == 0 and last[3] > 0.0:
             q0 = behind_origin(a, b, ms, support_mode, wp.vec3(last[0], last[1], last[2]), last[3], scale, BEHIND)
-          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, tolerance, iterations, refine, BEHIND)
+          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, mpr_options.tolerance, mpr_options.iterations,
+                                 mpr_options.refine, BEHIND)
       if res.hit == 0:
         continue
       extra = Patch()
@@ -743,7 +725,7 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
         m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
         m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
         m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-        SUPPORT_MODE_ID[opt.support_mode], opt.mpr_tolerance, opt.mpr_iterations, opt.mpr_refine,
+        SUPPORT_MODE_ID[opt.support_mode], settings_of(opt),
         opt.max_contacts_per_pair if opt.multi_contact else 1, opt.mc_perturbation,
         c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
         warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,

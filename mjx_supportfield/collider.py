@@ -66,8 +66,7 @@ class Collider:
     heightfield.check_model(mjm)
     if options.contacts_per_world and m.opt.enableflags & EnableBit.SLEEP:
       raise ValueError(_SLEEP_QUOTA)
-    self.options = options
-    self.ngeom, self.nq, self.nbody = mjm.ngeom, mjm.nq, mjm.nbody
+    self.options, self.ngeom, self.nq, self.nbody = options, mjm.ngeom, mjm.nq, mjm.nbody
     self.device = device = m.geom_type.device
     with wp.ScopedDevice(device):
       self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device)
@@ -81,7 +80,7 @@ class Collider:
       self.explicit_pair = wp.array(pairs[explicit].astype(np.int32), dtype=wp.vec2i)
       self.explicit_pairid = wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i)
       # no world can have more pairs than the model allows after its static filters
-      self.max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
+      self.max_pairs = npair_max = max(1, min(options.max_collision_pairs, len(pairs)))
       self.npair_filtered = len(pairs)
       self.nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
       self.has_stock_pairs = bool(stock.any()) or bool((pairids[:, 1] >= 0).any())
@@ -95,10 +94,9 @@ class Collider:
       queues = queue_table[t1 * routing.NGEOMTYPE + t2]
       nmpr = int(((queues == routing.QUEUE_GJK) | (queues == routing.QUEUE_CANDIDATE)).sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
-      nhfield = int(((t1 == GeomType.HFIELD) & np.isin(t2, [int(t) for t in CONVEX_TYPES])).sum())
-      self.hfield_pairs_per_world = min(nhfield, self.max_pairs)  # bounds the heightfield kernels' pairs
-      # boxes and meshes on a heightfield collide its prisms by MuJoCo Warp's GJK/EPA (heightfield.py)
-      self.hfield_ccd = bool(((t1 == GeomType.HFIELD) & np.isin(t2, [int(GeomType.BOX), int(GeomType.MESH)])).any())
+      on_hfield = t1 == GeomType.HFIELD  # bounds its kernels' pairs; boxes and meshes collide prisms by GJK/EPA
+      self.hfield_pairs_per_world = min(int((on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))).sum()), npair_max)
+      self.hfield_ccd = bool((on_hfield & np.isin(t2, [int(GeomType.BOX), int(GeomType.MESH)])).any())
       self.hfield_ccd_iterations = int(mjm.opt.ccd_iterations)
       # non-convex meshes: their own triangles' SDFs
       ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)

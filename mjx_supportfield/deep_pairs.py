@@ -322,14 +322,14 @@ def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, b
 
 
 @wp.func
-def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, scale: float) -> wp.vec4:
-  """Of ``normal``, the face normals of A and B and the edge-edge directions found near the best
+def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, along: float,
+                  scale: float) -> wp.vec4:
+  """Of ``normal`` (A and B overlap ``along`` it: overlap_along), the face normals of A and B and the edge-edge directions found near the best
   of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
   the one along which A and B overlap least, and that overlap (xyz, w). Directions whose
   overlap the witness points bound above the best found so far are skipped (Witness)."""
   w = witness(a, b, ms, mode, normal, scale)
-  start = wp.vec4(normal[0], normal[1], normal[2], FAR)
-  start = _shallower(a, b, ms, mode, normal, start)
+  start = wp.vec4(normal[0], normal[1], normal[2], wp.where(along < FAR, along, FAR))
   faces = _face_normals(b, a, b, ms, mode, w, -1.0, _face_normals(a, a, b, ms, mode, w, 1.0, start))
   best = _descend_edges(a, b, ms, mode, w, faces)
   if faces[3] < start[3]:  # else the walk from MPR's normal is the one just taken
@@ -350,7 +350,7 @@ def checked_answer(
   """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
   (least_overlap) when that comes out shallower."""
   along = overlap_along(a, b, ms, mode, res.normal)
-  least = least_overlap(a, b, ms, mode, res.normal, scale)
+  least = least_overlap(a, b, ms, mode, res.normal, along, scale)
   tol = mpr_options.tolerance
   if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
     return res

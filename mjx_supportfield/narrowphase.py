@@ -564,8 +564,8 @@ def convex_kernel(use_gjk: bool):
         res = gjk_epa(a, b, ms, support_mode, scale, mpr_options.tolerance, mpr_options.iterations)
       else:
         if warm_start:
-          last = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key)
-          checked = warmstart.last_checked(ws_slot_stamp, ws_slot_key, ws_slot_checked, now, worldid, key)
+          last, checked = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_slot_checked, now, worldid,
+                                           key)
         # one MPR call site, in a loop, keeps the kernel small: warm first when the pair has a
         # normal from the previous call, then cold if that found nothing
         for attempt in range(2):

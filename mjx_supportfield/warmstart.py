@@ -11,7 +11,7 @@ A full table only means a cold start for the pairs that found no slot.
 
 Each entry also carries the call that last ran the deep-pair check on the pair
 (``slot_checked``, deep_pairs.py), handed from the previous call's entry to this call's
-(``last_checked``, then ``insert``'s slot), so that a persistent deep pair is checked only now
+(``lookup``, then ``insert``'s slot), so that a persistent deep pair is checked only now
 and then (narrowphase.deep_verdict_holds).
 
 This module owns the cache (``WarmCache``, ``make_cache``), its device functions, and the reset
@@ -103,28 +103,17 @@ def lookup(
   slot_stamp: wp.array2d(dtype=int),
   slot_key: wp.array2d(dtype=int),
   slot_value: wp.array2d(dtype=wp.vec4),
+  slot_checked: wp.array2d(dtype=int),
   now: int,
   worldid: int,
   key: int,
-) -> wp.vec4:
-  """The previous call's (normal, depth) of ``key``; depth 0 when there is none."""
+):
+  """The previous call's entry of ``key``: its (normal, depth), depth 0 when there is none, and
+  the call that last ran the deep-pair check on the pair, NEVER when there is none."""
   s = _previous_slot(slot_stamp, slot_key, now, worldid, key)
   if s < 0:
-    return wp.vec4(0.0)
-  return slot_value[worldid, s]
-
-
-@wp.func
-def last_checked(
-  slot_stamp: wp.array2d(dtype=int), slot_key: wp.array2d(dtype=int), slot_checked: wp.array2d(dtype=int), now: int,
-  worldid: int, key: int,
-) -> int:
-  """The call that last ran the deep-pair check on ``key``, as the previous call's entry has it;
-  NEVER when there is no entry."""
-  s = _previous_slot(slot_stamp, slot_key, now, worldid, key)
-  if s < 0:
-    return NEVER
-  return slot_checked[worldid, s]
+    return wp.vec4(0.0), NEVER
+  return slot_value[worldid, s], slot_checked[worldid, s]
 
 
 @wp.func

@@ -33,17 +33,19 @@ def _insert_keys(cache_stamp: wp.array2d(dtype=int), cache_key: wp.array2d(dtype
 
 @wp.kernel
 def _lookup_keys(cache_stamp: wp.array2d(dtype=int), cache_key: wp.array2d(dtype=int),
-                 cache_value: wp.array2d(dtype=wp.vec4), now: int, keys: wp.array2d(dtype=int),
-                 out: wp.array2d(dtype=wp.vec4)):
+                 cache_value: wp.array2d(dtype=wp.vec4), cache_checked: wp.array2d(dtype=int), now: int,
+                 keys: wp.array2d(dtype=int), out: wp.array2d(dtype=wp.vec4)):
   w, i = wp.tid()
-  out[w, i] = warmstart.lookup(cache_stamp, cache_key, cache_value, now, w, keys[w, i])
+  value, _ = warmstart.lookup(cache_stamp, cache_key, cache_value, cache_checked, now, w, keys[w, i])
+  out[w, i] = value
 
 
 def _cycle(cache, now, insert_keys, probe_keys):
   """Looks up probe_keys as call ``now``, then inserts insert_keys as call ``now`` (like the kernel)."""
   probe = wp.array(np.asarray(probe_keys, np.int32), dtype=int, device="cpu")
   found = wp.zeros(probe.shape, dtype=wp.vec4, device="cpu")
-  wp.launch(_lookup_keys, dim=probe.shape, inputs=[cache.slot_stamp, cache.slot_key, cache.slot_value, now, probe],
+  wp.launch(_lookup_keys, dim=probe.shape,
+            inputs=[cache.slot_stamp, cache.slot_key, cache.slot_value, cache.slot_checked, now, probe],
             outputs=[found], device="cpu")
   ins = wp.array(np.asarray(insert_keys, np.int32), dtype=int, device="cpu")
   wp.launch(_insert_keys, dim=ins.shape, inputs=[cache.slot_stamp, cache.slot_key, cache.slot_value, now, ins],

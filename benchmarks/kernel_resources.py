@@ -31,11 +31,16 @@ from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
 from mjx_supportfield import nonconvex
 from mjx_supportfield import routing
+from mjx_supportfield.options import Options
+from mjx_supportfield.types import SUPPORT_MODE_ID
 
 # broad-phase kernels are built per model; this key is a model without per-world sizes or sleep
 _KEY = (0, 1, 1, 1, 1, 1, 1, False, False)
 # the analytic kernel is built per model's pair types: those of a scene of primitives (no meshes)
 _PRIMITIVE_PAIRS = tuple(t for t in routing.ANALYTIC_PAIRS if GeomType.MESH not in t)
+
+# the support-mode factories' kernels are reported for the default mode
+_MODE = SUPPORT_MODE_ID[Options().support_mode]
 
 ENTRY = re.compile(r"Compiling entry function '([^']+)'")
 USAGE = re.compile(r"Used (\d+) registers(?:.*?(\d+) bytes cumulative stack size)?")
@@ -46,19 +51,19 @@ def kernels() -> dict:
   return {
     "listed pairs (nxn)": broadphase.listed_pairs_kernel(_KEY, True),
     "compact pairs (SAP)": broadphase.compact_pairs,
-    "sift MPR pairs": narrowphase.sift_mpr_pairs,
+    "sift MPR pairs": narrowphase.sift_mpr_pairs(_MODE),
     "analytic (primitives)": narrowphase.analytic_kernel(_PRIMITIVE_PAIRS),
-    "convex (MPR)": narrowphase.convex_kernel(False),
-    "convex (GJK/EPA)": narrowphase.convex_kernel(True),
-    "deep pairs (check)": deep_pairs.deep_pair_kernel,
-    "tilt (closed form)": multicontact_pass.tilt_kernel,
-    "tilt (MPR)": multicontact_pass.tilt_mpr_kernel,
-    "patch (multi-contact)": multicontact_pass.patch_kernel,
-    "manifold (face clipping)": multicontact_pass.manifold_kernel,
-    "heightfield jobs": heightfield.hfield_jobs,
-    "heightfield MPR": heightfield.hfield_mpr,
-    "heightfield contacts": heightfield.hfield_contacts,
-    "non-convex (SDF)": nonconvex.nonconvex_narrowphase,
+    "convex (MPR)": narrowphase.convex_kernel(False, _MODE),
+    "convex (GJK/EPA)": narrowphase.convex_kernel(True, _MODE),
+    "deep pairs (check)": deep_pairs.deep_pair_kernel(_MODE),
+    "tilt (closed form)": multicontact_pass.pass_kernels(_MODE).tilt,
+    "tilt (MPR)": multicontact_pass.pass_kernels(_MODE).tilt_mpr,
+    "patch (multi-contact)": multicontact_pass.pass_kernels(_MODE).patch,
+    "manifold (face clipping)": multicontact_pass.pass_kernels(_MODE).manifold,
+    "heightfield jobs": heightfield.stage_kernels(_MODE).jobs,
+    "heightfield MPR": heightfield.stage_kernels(_MODE).mpr,
+    "heightfield contacts": heightfield.stage_kernels(_MODE).contacts,
+    "non-convex (SDF)": nonconvex.nonconvex_narrowphase(_MODE),
   }
 
 

@@ -20,6 +20,7 @@ import ast
 import collections
 import contextlib
 import functools
+from types import SimpleNamespace
 
 import mujoco
 import mujoco_warp as mjw
@@ -49,25 +50,32 @@ def _register_cap(cap):
     yield
     return
   saved_convex = narrowphase.convex_kernel
-  names = ("tilt_kernel", "tilt_mpr_kernel", "patch_kernel")
-  saved = {name: getattr(multicontact_pass, name) for name in names}
-  saved_hfield_mpr = heightfield.hfield_mpr
+  saved_pass = multicontact_pass.pass_kernels
+  saved_stage = heightfield.stage_kernels
 
   def capped(kernel):
     return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
 
-  narrowphase.convex_kernel = functools.lru_cache(maxsize=None)(lambda use_gjk: capped(saved_convex(use_gjk)))
-  multicontact_pass.tilt_kernel = capped(saved["tilt_kernel"])
-  multicontact_pass.tilt_mpr_kernel = capped(saved["tilt_mpr_kernel"])
-  multicontact_pass.patch_kernel = capped(saved["patch_kernel"])
-  heightfield.hfield_mpr = capped(saved_hfield_mpr)
+  @functools.lru_cache(maxsize=None)
+  def capped_pass(mode):
+    k = saved_pass(mode)
+    return SimpleNamespace(**{**vars(k), "tilt": capped(k.tilt), "tilt_mpr": capped(k.tilt_mpr), "patch": capped(k.patch)})
+
+  @functools.lru_cache(maxsize=None)
+  def capped_stage(mode):
+    k = saved_stage(mode)
+    return SimpleNamespace(**{**vars(k), "mpr": capped(k.mpr)})
+
+  narrowphase.convex_kernel = functools.lru_cache(maxsize=None)(
+    lambda use_gjk, mode: capped(saved_convex(use_gjk, mode)))
+  multicontact_pass.pass_kernels = capped_pass
+  heightfield.stage_kernels = capped_stage
   try:
     yield
   finally:
     narrowphase.convex_kernel = saved_convex
-    for name, kernel in saved.items():
-      setattr(multicontact_pass, name, kernel)
-    heightfield.hfield_mpr = saved_hfield_mpr
+    multicontact_pass.pass_kernels = saved_pass
+    heightfield.stage_kernels = saved_stage
 
 
 def main():

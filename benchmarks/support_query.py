@@ -70,6 +70,22 @@ def _direction(seed: int, i: int, k: int, coherent: int) -> wp.vec3:
   return d
 
 
+# the support query of each mode (support_funcs builds them per mode); the kernels below pick one
+# at run time, as the plugin's kernels did before the mode was fixed at code generation
+_FIELD = sp.support_funcs(0)
+_REFINED = sp.support_funcs(1)
+_EXACT = sp.support_funcs(2)
+
+
+@wp.func
+def _mesh_support_index(ms: MeshSupport, mesh: int, d: wp.vec3, mode: int) -> int:
+  if mode == 0:
+    return _FIELD.mesh_support_index(ms, mesh, d)
+  if mode == 1:
+    return _REFINED.mesh_support_index(ms, mesh, d)
+  return _EXACT.mesh_support_index(ms, mesh, d)
+
+
 @wp.kernel
 def query_kernel(ms: MeshSupport, nmesh: int, mode: int, coherent: int, seed: int, out: wp.array(dtype=float)):
   """mode 0 field, 1 refined, 2 exact, 3 hill-climb from the previous vertex, -1 no query."""
@@ -86,7 +102,7 @@ def query_kernel(ms: MeshSupport, nmesh: int, mode: int, coherent: int, seed: in
       prev = sp.hill_climb(ms, mesh, prev, d)
       v = prev
     else:
-      v = sp.mesh_support_index(ms, mesh, d, mode)
+      v = _mesh_support_index(ms, mesh, d, mode)
     acc += wp.dot(sp.hull_point(ms, mesh, v), d)
   out[i] = acc
 
@@ -104,7 +120,7 @@ def exactness_kernel(ms: MeshSupport, nmesh: int, mode: int, coherent: int, seed
       prev = sp.hill_climb(ms, mesh, prev, d)
       v = prev
     else:
-      v = sp.mesh_support_index(ms, mesh, d, mode)
+      v = _mesh_support_index(ms, mesh, d, mode)
     got = wp.dot(sp.hull_point(ms, mesh, v), d)
     best = wp.dot(sp.hull_point(ms, mesh, sp.hull_scan(ms, mesh, d)), d)
     if got >= best - 1.0e-6 * wp.abs(best):

@@ -32,6 +32,8 @@ corrected normal) or written as one contact; its warm-start normal is corrected 
 """
 
 import dataclasses
+import functools
+from types import SimpleNamespace
 
 import warp as wp
 from mujoco_warp._src.collision_core import contact_params
@@ -44,8 +46,7 @@ from mjx_supportfield.contact_quota import contact_outputs
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import MprSettings
-from mjx_supportfield.mpr import behind_origin
-from mjx_supportfield.mpr import mpr_refined_from
+from mjx_supportfield.mpr import mpr_funcs
 from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.multicontact import Patch
 from mjx_supportfield.narrowphase import GRID_THREADS
@@ -54,13 +55,13 @@ from mjx_supportfield.narrowphase import wants_patch
 from mjx_supportfield.narrowphase import write_pair_contacts
 from mjx_supportfield.shapes import posed_pair
 from mjx_supportfield.support import hull_point
-from mjx_supportfield.support import mesh_support_index
-from mjx_supportfield.support import support_world
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_FIELD
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import mode_module
 
 wp.set_module_options({"enable_backward": False})
 
@@ -97,22 +98,6 @@ def make_buffers(nworld: int, capacity: int) -> Buffers:
                  pos=wp.zeros(rows, dtype=wp.vec3))
 
 
-@wp.func
-def overlap_along(a: Shape, b: Shape, ms: MeshSupport, mode: int, u: wp.vec3) -> float:
-  """How far A and B overlap along unit direction u (from A to B): A's support minus B's."""
-  return wp.dot(support_world(a, ms, u, mode) - support_world(b, ms, -u, mode), u)
-
-
-@wp.func
-def _shallower(a: Shape, b: Shape, ms: MeshSupport, mode: int, u: wp.vec3, best: wp.vec4) -> wp.vec4:
-  """best (a direction from A to B and the overlap of A and B along it), or u with its overlap
-  when that is smaller."""
-  h = overlap_along(a, b, ms, mode, u)
-  if h < best[3]:
-    return wp.vec4(u[0], u[1], u[2], h)
-  return best
-
-
 @wp.struct
 class Witness:
   """Points known to lie in A and in B. Along any direction u they bound the overlap from below
@@ -127,20 +112,6 @@ class Witness:
   # how far a bound must exceed the best overlap to skip the direction (float rounding of both);
   # FAR skips nothing: with support_mode="field" a support can fall short of the hull's extent
   slack: float
-
-
-@wp.func
-def witness(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, scale: float) -> Witness:
-  """The witness points of a pair whose MPR normal is ``normal`` (from A to B)."""
-  w = Witness()
-  w.a0 = a.center
-  w.a1 = support_world(a, ms, normal, mode)
-  w.b0 = b.center
-  w.b1 = support_world(b, ms, -normal, mode)
-  w.slack = FAR
-  if mode != SUPPORT_FIELD:
-    w.slack = PRUNE_SLACK * scale + 32.0 * FLOAT_EPS * (wp.length(a.pos) + wp.length(b.pos))
-  return w
 
 
 @wp.func
@@ -162,36 +133,6 @@ def _hull_face_bound(s: Shape, a: Shape, b: Shape, w: Witness, sign: float, n: w
   if sign > 0.0:
     return wp.dot(n, a.pos) + offset + a.inflate - _b_reach(w, n)
   return _a_reach(w, -n) + wp.dot(n, b.pos) + offset + b.inflate
-
-
-@wp.func
-def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, sign: float,
-                  best: wp.vec4) -> wp.vec4:
-  """best improved by the outward face normals (times sign: every direction points from A to B)
-  of s, A or B: a mesh's hull faces, a box's six, a cylinder's two ends. Curved sides have no
-  face: there MPR's refinement along the normal already walks to the nearest point."""
-  if s.gtype == GeomType.MESH:
-    adr = ms.plane_adr[s.mesh]
-    for f in range(ms.plane_num[s.mesh]):
-      plane = ms.plane[adr + f]
-      n = s.rot @ wp.vec3(plane[0], plane[1], plane[2])
-      if _hull_face_bound(s, a, b, w, sign, n, plane[3]) <= best[3] + w.slack:
-        best = _shallower(a, b, ms, mode, sign * n, best)
-  elif s.gtype == GeomType.BOX or s.gtype == GeomType.CYLINDER:
-    first = wp.where(s.gtype == GeomType.BOX, 0, 2)
-    for c in range(first, 3):
-      axis = wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
-      best = _shallower(a, b, ms, mode, sign * axis, best)
-      best = _shallower(a, b, ms, mode, -sign * axis, best)
-  return best
-
-
-@wp.func
-def _support_vertex(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> int:
-  """Local hull index of a mesh shape's support vertex for world direction d; -1 for other types."""
-  if s.gtype == GeomType.MESH:
-    return mesh_support_index(ms, s.mesh, wp.transpose(s.rot) @ d, mode)
-  return -1
 
 
 @wp.func
@@ -223,39 +164,6 @@ def _vertex_or(s: Shape, ms: MeshSupport, vertex: int, otherwise: wp.vec3) -> wp
 
 
 @wp.func
-def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, best: wp.vec4) -> wp.vec4:
-  """best improved by the cross products of the edges of A and B at their support points along
-  best's direction (each turned to point from A to B)."""
-  u = wp.vec3(best[0], best[1], best[2])
-  va = _support_vertex(a, ms, u, mode)
-  vb = _support_vertex(b, ms, -u, mode)
-  pa = _vertex_or(a, ms, va, w.a1)
-  pb = _vertex_or(b, ms, vb, w.b1)
-  nb = _edge_count(b, ms, vb)
-  for i in range(_edge_count(a, ms, va)):
-    ea = _edge(a, ms, va, i)
-    for j in range(nb):
-      best = _cross_direction(a, b, ms, mode, w, ea, _edge(b, ms, vb, j), pa, pb, u, best)
-  return best
-
-
-@wp.func
-def _cross_direction(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, ea: wp.vec3, eb: wp.vec3, pa: wp.vec3, pb: wp.vec3,
-  u: wp.vec3, best: wp.vec4
-) -> wp.vec4:
-  """best improved by the cross product of edges ea (of A, through point pa) and eb (of B, through
-  pb), turned to the side of u."""
-  c = wp.cross(ea, eb)
-  if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-    c = wp.normalize(c)
-    c = wp.where(wp.dot(c, u) < 0.0, -c, c)
-    if wp.max(_a_reach(w, c), wp.dot(c, pa)) - wp.min(_b_reach(w, c), wp.dot(c, pb)) <= best[3] + w.slack:
-      best = _shallower(a, b, ms, mode, c, best)
-  return best
-
-
-@wp.func
 def _edge_ends(s: Shape, ms: MeshSupport) -> int:
   """Edge ends of s: a mesh's hull edges counted at both ends; a box's 3 directions; 0 else."""
   if s.gtype == GeomType.BOX:
@@ -268,216 +176,316 @@ def _edge_ends(s: Shape, ms: MeshSupport) -> int:
   return 0
 
 
-@wp.func
-def _crosses_with_edge(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, ea: wp.vec3, pa: wp.vec3, u: wp.vec3, best: wp.vec4
-) -> wp.vec4:
-  """best improved by the crosses of edge ea of A (through point pa) with every edge of B (each once)."""
-  if b.gtype == GeomType.BOX:
-    for k in range(3):
-      eb = wp.vec3(b.rot[0, k], b.rot[1, k], b.rot[2, k])
-      best = _cross_direction(a, b, ms, mode, w, ea, eb, pa, w.b1, u, best)
-  elif b.gtype == GeomType.MESH:
-    for v in range(ms.hull_num[b.mesh]):
-      g = ms.hull_adr[b.mesh] + v
-      for k in range(ms.nbr_num[g]):
-        other = ms.nbr[ms.nbr_adr[g] + k]
-        if other > v:
-          eb = b.rot @ (hull_point(ms, b.mesh, other) - hull_point(ms, b.mesh, v))
-          best = _cross_direction(a, b, ms, mode, w, ea, eb, pa, _vertex_or(b, ms, v, w.b1), u, best)
-  return best
+@functools.lru_cache(maxsize=None)
+def deep_funcs(mode: int) -> SimpleNamespace:
+  """The check's device functions on the support functions of support mode ``mode``
+  (support_funcs, mpr_funcs): ``least_overlap`` and ``checked_answer``."""
+  support = support_funcs(mode)
+  mesh_support_index = support.mesh_support_index
+  support_world = support.support_world
+  behind_origin = mpr_funcs(mode).behind_origin
+  mpr_refined_from = mpr_funcs(mode).mpr_refined_from
 
+  @wp.func
+  def overlap_along(a: Shape, b: Shape, ms: MeshSupport, u: wp.vec3) -> float:
+    """How far A and B overlap along unit direction u (from A to B): A's support minus B's."""
+    return wp.dot(support_world(a, ms, u) - support_world(b, ms, -u), u)
 
-@wp.func
-def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, best: wp.vec4) -> wp.vec4:
-  """best improved by the crosses of every edge of A with every edge of B (turned to the side of
-  best's direction)."""
-  u = wp.vec3(best[0], best[1], best[2])
-  if a.gtype == GeomType.BOX:
-    for k in range(3):
-      best = _crosses_with_edge(a, b, ms, mode, w, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), w.a1, u, best)
-  elif a.gtype == GeomType.MESH:
-    for v in range(ms.hull_num[a.mesh]):
-      g = ms.hull_adr[a.mesh] + v
-      for k in range(ms.nbr_num[g]):
-        other = ms.nbr[ms.nbr_adr[g] + k]
-        if other > v:
-          ea = a.rot @ (hull_point(ms, a.mesh, other) - hull_point(ms, a.mesh, v))
-          best = _crosses_with_edge(a, b, ms, mode, w, ea, _vertex_or(a, ms, v, w.a1), u, best)
-  return best
+  @wp.func
+  def _shallower(a: Shape, b: Shape, ms: MeshSupport, u: wp.vec3, best: wp.vec4) -> wp.vec4:
+    """best (a direction from A to B and the overlap of A and B along it), or u with its overlap
+    when that is smaller."""
+    h = overlap_along(a, b, ms, u)
+    if h < best[3]:
+      return wp.vec4(u[0], u[1], u[2], h)
+    return best
 
+  @wp.func
+  def witness(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, scale: float) -> Witness:
+    """The witness points of a pair whose MPR normal is ``normal`` (from A to B)."""
+    w = Witness()
+    w.a0 = a.center
+    w.a1 = support_world(a, ms, normal)
+    w.b0 = b.center
+    w.b1 = support_world(b, ms, -normal)
+    w.slack = FAR
+    if wp.static(mode != SUPPORT_FIELD):
+      w.slack = PRUNE_SLACK * scale + 32.0 * FLOAT_EPS * (wp.length(a.pos) + wp.length(b.pos))
+    return w
 
-@wp.func
-def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, mode: int, w: Witness, best: wp.vec4) -> wp.vec4:
-  """best improved by walking over edge-edge directions: the crosses of the edges at the support
-  points, again from the better one found, up to EDGE_ROUNDS times. A polytope pair's
-  penetration direction need not be a face normal of either shape; where it is an edge-edge
-  direction, its edges lie at the support points of directions near it."""
-  for _ in range(EDGE_ROUNDS):
-    start = best[3]
-    best = _edge_crosses(a, b, ms, mode, w, best)
-    if not (best[3] < start):
-      break
-  return best
+  @wp.func
+  def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, w: Witness, sign: float,
+                    best: wp.vec4) -> wp.vec4:
+    """best improved by the outward face normals (times sign: every direction points from A to B)
+    of s, A or B: a mesh's hull faces, a box's six, a cylinder's two ends. Curved sides have no
+    face: there MPR's refinement along the normal already walks to the nearest point."""
+    if s.gtype == GeomType.MESH:
+      adr = ms.plane_adr[s.mesh]
+      for f in range(ms.plane_num[s.mesh]):
+        plane = ms.plane[adr + f]
+        n = s.rot @ wp.vec3(plane[0], plane[1], plane[2])
+        if _hull_face_bound(s, a, b, w, sign, n, plane[3]) <= best[3] + w.slack:
+          best = _shallower(a, b, ms, sign * n, best)
+    elif s.gtype == GeomType.BOX or s.gtype == GeomType.CYLINDER:
+      first = wp.where(s.gtype == GeomType.BOX, 0, 2)
+      for c in range(first, 3):
+        axis = wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
+        best = _shallower(a, b, ms, sign * axis, best)
+        best = _shallower(a, b, ms, -sign * axis, best)
+    return best
 
+  @wp.func
+  def _support_vertex(s: Shape, ms: MeshSupport, d: wp.vec3) -> int:
+    """Local hull index of a mesh shape's support vertex for world direction d; -1 for other types."""
+    if s.gtype == GeomType.MESH:
+      return mesh_support_index(ms, s.mesh, wp.transpose(s.rot) @ d)
+    return -1
 
-@wp.func
-def least_overlap(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, along: float,
-                  scale: float) -> wp.vec4:
-  """Of ``normal`` (A and B overlap ``along`` it: overlap_along), the face normals of A and B and the edge-edge directions found near the best
-  of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
-  the one along which A and B overlap least, and that overlap (xyz, w). Directions whose
-  overlap the witness points bound above the best found so far are skipped (Witness)."""
-  w = witness(a, b, ms, mode, normal, scale)
-  start = wp.vec4(normal[0], normal[1], normal[2], wp.where(along < FAR, along, FAR))
-  faces = _face_normals(b, a, b, ms, mode, w, -1.0, _face_normals(a, a, b, ms, mode, w, 1.0, start))
-  best = _descend_edges(a, b, ms, mode, w, faces)
-  if faces[3] < start[3]:  # else the walk from MPR's normal is the one just taken
-    near = _descend_edges(a, b, ms, mode, w, start)
-    if near[3] < best[3]:
-      best = near
-  # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
-  # where it starts)
-  if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
-    best = _all_edge_crosses(a, b, ms, mode, w, best)
-  return best
+  @wp.func
+  def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4) -> wp.vec4:
+    """best improved by the cross products of the edges of A and B at their support points along
+    best's direction (each turned to point from A to B)."""
+    u = wp.vec3(best[0], best[1], best[2])
+    va = _support_vertex(a, ms, u)
+    vb = _support_vertex(b, ms, -u)
+    pa = _vertex_or(a, ms, va, w.a1)
+    pb = _vertex_or(b, ms, vb, w.b1)
+    nb = _edge_count(b, ms, vb)
+    for i in range(_edge_count(a, ms, va)):
+      ea = _edge(a, ms, va, i)
+      for j in range(nb):
+        best = _cross_direction(a, b, ms, w, ea, _edge(b, ms, vb, j), pa, pb, u, best)
+    return best
 
+  @wp.func
+  def _cross_direction(
+    a: Shape, b: Shape, ms: MeshSupport, w: Witness, ea: wp.vec3, eb: wp.vec3, pa: wp.vec3, pb: wp.vec3,
+    u: wp.vec3, best: wp.vec4
+  ) -> wp.vec4:
+    """best improved by the cross product of edges ea (of A, through point pa) and eb (of B, through
+    pb), turned to the side of u."""
+    c = wp.cross(ea, eb)
+    if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
+      c = wp.normalize(c)
+      c = wp.where(wp.dot(c, u) < 0.0, -c, c)
+      if wp.max(_a_reach(w, c), wp.dot(c, pa)) - wp.min(_b_reach(w, c), wp.dot(c, pb)) <= best[3] + w.slack:
+        best = _shallower(a, b, ms, c, best)
+    return best
 
-@wp.func
-def checked_answer(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, res: MprResult, scale: float, mpr_options: MprSettings
-) -> MprResult:
-  """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
-  (least_overlap) when that comes out shallower."""
-  along = overlap_along(a, b, ms, mode, res.normal)
-  least = least_overlap(a, b, ms, mode, res.normal, along, scale)
-  tol = mpr_options.tolerance
-  if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
+  @wp.func
+  def _crosses_with_edge(
+    a: Shape, b: Shape, ms: MeshSupport, w: Witness, ea: wp.vec3, pa: wp.vec3, u: wp.vec3, best: wp.vec4
+  ) -> wp.vec4:
+    """best improved by the crosses of edge ea of A (through point pa) with every edge of B (each once)."""
+    if b.gtype == GeomType.BOX:
+      for k in range(3):
+        eb = wp.vec3(b.rot[0, k], b.rot[1, k], b.rot[2, k])
+        best = _cross_direction(a, b, ms, w, ea, eb, pa, w.b1, u, best)
+    elif b.gtype == GeomType.MESH:
+      for v in range(ms.hull_num[b.mesh]):
+        g = ms.hull_adr[b.mesh] + v
+        for k in range(ms.nbr_num[g]):
+          other = ms.nbr[ms.nbr_adr[g] + k]
+          if other > v:
+            eb = b.rot @ (hull_point(ms, b.mesh, other) - hull_point(ms, b.mesh, v))
+            best = _cross_direction(a, b, ms, w, ea, eb, pa, _vertex_or(b, ms, v, w.b1), u, best)
+    return best
+
+  @wp.func
+  def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4) -> wp.vec4:
+    """best improved by the crosses of every edge of A with every edge of B (turned to the side of
+    best's direction)."""
+    u = wp.vec3(best[0], best[1], best[2])
+    if a.gtype == GeomType.BOX:
+      for k in range(3):
+        best = _crosses_with_edge(a, b, ms, w, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), w.a1, u, best)
+    elif a.gtype == GeomType.MESH:
+      for v in range(ms.hull_num[a.mesh]):
+        g = ms.hull_adr[a.mesh] + v
+        for k in range(ms.nbr_num[g]):
+          other = ms.nbr[ms.nbr_adr[g] + k]
+          if other > v:
+            ea = a.rot @ (hull_point(ms, a.mesh, other) - hull_point(ms, a.mesh, v))
+            best = _crosses_with_edge(a, b, ms, w, ea, _vertex_or(a, ms, v, w.a1), u, best)
+    return best
+
+  @wp.func
+  def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4) -> wp.vec4:
+    """best improved by walking over edge-edge directions: the crosses of the edges at the support
+    points, again from the better one found, up to EDGE_ROUNDS times. A polytope pair's
+    penetration direction need not be a face normal of either shape; where it is an edge-edge
+    direction, its edges lie at the support points of directions near it."""
+    for _ in range(EDGE_ROUNDS):
+      start = best[3]
+      best = _edge_crosses(a, b, ms, w, best)
+      if not (best[3] < start):
+        break
+    return best
+
+  @wp.func
+  def least_overlap(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, along: float,
+                    scale: float) -> wp.vec4:
+    """Of ``normal`` (A and B overlap ``along`` it: overlap_along), the face normals of A and B and the edge-edge directions found near the best
+    of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
+    the one along which A and B overlap least, and that overlap (xyz, w). Directions whose
+    overlap the witness points bound above the best found so far are skipped (Witness)."""
+    w = witness(a, b, ms, normal, scale)
+    start = wp.vec4(normal[0], normal[1], normal[2], wp.where(along < FAR, along, FAR))
+    faces = _face_normals(b, a, b, ms, w, -1.0, _face_normals(a, a, b, ms, w, 1.0, start))
+    best = _descend_edges(a, b, ms, w, faces)
+    if faces[3] < start[3]:  # else the walk from MPR's normal is the one just taken
+      near = _descend_edges(a, b, ms, w, start)
+      if near[3] < best[3]:
+        best = near
+    # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
+    # where it starts)
+    if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
+      best = _all_edge_crosses(a, b, ms, w, best)
+    return best
+
+  @wp.func
+  def checked_answer(
+    a: Shape, b: Shape, ms: MeshSupport, res: MprResult, scale: float, mpr_options: MprSettings
+  ) -> MprResult:
+    """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
+    (least_overlap) when that comes out shallower."""
+    along = overlap_along(a, b, ms, res.normal)
+    least = least_overlap(a, b, ms, res.normal, along, scale)
+    tol = mpr_options.tolerance
+    if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
+      return res
+    u = wp.vec3(least[0], least[1], least[2])
+    r = mpr_refined_from(a, b, ms, behind_origin(a, b, ms, u, least[3], scale, BEHIND), scale, tol,
+                         mpr_options.iterations, mpr_options.refine, BEHIND)
+    if r.hit != 0 and r.depth < res.depth - tol * scale:
+      return r
     return res
-  u = wp.vec3(least[0], least[1], least[2])
-  r = mpr_refined_from(a, b, ms, mode, behind_origin(a, b, ms, mode, u, least[3], scale, BEHIND), scale, tol,
-                       mpr_options.iterations, mpr_options.refine, BEHIND)
-  if r.hit != 0 and r.depth < res.depth - tol * scale:
-    return r
-  return res
+
+  return SimpleNamespace(least_overlap=least_overlap, checked_answer=checked_answer)
 
 
-@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
-def deep_pair_kernel(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_condim: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_priority: wp.array(dtype=int),
-  geom_solmix: wp.array2d(dtype=float),
-  geom_solref: wp.array2d(dtype=wp.vec2),
-  geom_solimp: wp.array2d(dtype=vec5),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_friction: wp.array2d(dtype=wp.vec3),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  geom_adhesion: wp.array2d(dtype=float),
-  pair_dim: wp.array(dtype=int),
-  pair_solref: wp.array2d(dtype=wp.vec2),
-  pair_solreffriction: wp.array2d(dtype=wp.vec2),
-  pair_solimp: wp.array2d(dtype=vec5),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  pair_adhesion: wp.array2d(dtype=float),
-  pair_friction: wp.array2d(dtype=vec5),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  naconmax_in: int,
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  mpr_options: MprSettings,
-  max_contacts: int,
-  mc_perturbation: float,
-  warm_start: int,
-  ws_stamp: wp.array(dtype=int),
-  ws_slot_stamp: wp.array2d(dtype=int),
-  ws_slot_key: wp.array2d(dtype=int),
-  deep_count: wp.array(dtype=int),
-  deep_pair: wp.array(dtype=int),
-  deep_result: wp.array(dtype=wp.vec4),
-  deep_pos: wp.array(dtype=wp.vec3),
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  nthread: int,
-  quota: ContactQuota,
-  # Out:
-  ws_slot_value: wp.array2d(dtype=wp.vec4),
-  ws_slot_checked: wp.array2d(dtype=int),
-  patch_count: wp.array(dtype=int),
-  patch_pair: wp.array(dtype=int),
-  patch_result: wp.array(dtype=wp.vec4),
-  patch_pos: wp.array(dtype=wp.vec3),
-  # Data out:
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
-):
-  """The deep answers the convex kernel queued, one thread a pair: each checked along the face
-  normals of both shapes (checked_answer), then queued for multi-contact or written as the
-  convex kernel does."""
-  tid = wp.tid()
-  for s in range(tid, wp.min(deep_count[0], deep_pair.shape[0]), nthread):
-    cid = deep_pair[s]
-    geoms = pair_in[cid]
-    worldid = pair_worldid_in[cid]
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-      pair_friction, pair_in, pairid_in, cid, worldid,
-    )
-    band = wp.max(margin + gap, 0.0)
-    a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
-                             geoms, worldid)
-    res = MprResult()
-    res.hit = 1
-    queued = deep_result[s]
-    res.normal = wp.vec3(queued[0], queued[1], queued[2])
-    res.depth = queued[3]
-    res.pos = deep_pos[s]
-    res = checked_answer(a, b, ms, support_mode, res, scale, mpr_options)
-    value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
-    if warm_start:
-      key = geoms[0] * geom_type.shape[0] + geoms[1]
-      stored = warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[0], worldid, key, value)
-      if stored >= 0:
-        ws_slot_checked[worldid, stored] = ws_stamp[0]
-    if wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
-      slot = wp.atomic_add(patch_count, 0, 1)
-      patch_pair[slot] = cid
-      patch_result[slot] = value
-      patch_pos[slot] = res.pos
-      continue
-    extra = Patch()
-    extra.n = 0
-    write_pair_contacts(
-      res, extra, 0.0, 0.0, 1, band, naconmax_in, margin, gap, condim, friction, solref, solreffriction, solimp,
-      adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out, contact_frame_out,
-      contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
-      contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
-      contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
-    )
+@functools.lru_cache(maxsize=None)
+def deep_pair_kernel(mode: int) -> wp.Kernel:
+  """The check's kernel for support mode ``mode``, in that mode's module (types.mode_module)."""
+  checked_answer = deep_funcs(mode).checked_answer
+
+  @wp.kernel(module=mode_module(__name__, mode), cuda_max_registers=HEAVY_REGISTERS)
+  def deep_pair_kernel(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_condim: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_priority: wp.array(dtype=int),
+    geom_solmix: wp.array2d(dtype=float),
+    geom_solref: wp.array2d(dtype=wp.vec2),
+    geom_solimp: wp.array2d(dtype=vec5),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_friction: wp.array2d(dtype=wp.vec3),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    geom_adhesion: wp.array2d(dtype=float),
+    pair_dim: wp.array(dtype=int),
+    pair_solref: wp.array2d(dtype=wp.vec2),
+    pair_solreffriction: wp.array2d(dtype=wp.vec2),
+    pair_solimp: wp.array2d(dtype=vec5),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    pair_adhesion: wp.array2d(dtype=float),
+    pair_friction: wp.array2d(dtype=vec5),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    naconmax_in: int,
+    # In:
+    ms: MeshSupport,
+    mpr_options: MprSettings,
+    max_contacts: int,
+    mc_perturbation: float,
+    warm_start: int,
+    ws_stamp: wp.array(dtype=int),
+    ws_slot_stamp: wp.array2d(dtype=int),
+    ws_slot_key: wp.array2d(dtype=int),
+    deep_count: wp.array(dtype=int),
+    deep_pair: wp.array(dtype=int),
+    deep_result: wp.array(dtype=wp.vec4),
+    deep_pos: wp.array(dtype=wp.vec3),
+    pair_in: wp.array(dtype=wp.vec2i),
+    pairid_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    nthread: int,
+    quota: ContactQuota,
+    # Out:
+    ws_slot_value: wp.array2d(dtype=wp.vec4),
+    ws_slot_checked: wp.array2d(dtype=int),
+    patch_count: wp.array(dtype=int),
+    patch_pair: wp.array(dtype=int),
+    patch_result: wp.array(dtype=wp.vec4),
+    patch_pos: wp.array(dtype=wp.vec3),
+    # Data out:
+    contact_dist_out: wp.array(dtype=float),
+    contact_pos_out: wp.array(dtype=wp.vec3),
+    contact_frame_out: wp.array(dtype=wp.mat33),
+    contact_includemargin_out: wp.array(dtype=float),
+    contact_friction_out: wp.array(dtype=vec5),
+    contact_solref_out: wp.array(dtype=wp.vec2),
+    contact_solreffriction_out: wp.array(dtype=wp.vec2),
+    contact_solimp_out: wp.array(dtype=vec5),
+    contact_dim_out: wp.array(dtype=int),
+    contact_geom_out: wp.array(dtype=wp.vec2i),
+    contact_efc_address_out: wp.array2d(dtype=int),
+    contact_worldid_out: wp.array(dtype=int),
+    contact_type_out: wp.array(dtype=int),
+    contact_geomcollisionid_out: wp.array(dtype=int),
+    contact_adhesion_out: wp.array(dtype=float),
+    nacon_out: wp.array(dtype=int),
+  ):
+    """The deep answers the convex kernel queued, one thread a pair: each checked along the face
+    normals of both shapes (checked_answer), then queued for multi-contact or written as the
+    convex kernel does."""
+    tid = wp.tid()
+    for s in range(tid, wp.min(deep_count[0], deep_pair.shape[0]), nthread):
+      cid = deep_pair[s]
+      geoms = pair_in[cid]
+      worldid = pair_worldid_in[cid]
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
+        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
+        pair_friction, pair_in, pairid_in, cid, worldid,
+      )
+      band = wp.max(margin + gap, 0.0)
+      a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
+                               geoms, worldid)
+      res = MprResult()
+      res.hit = 1
+      queued = deep_result[s]
+      res.normal = wp.vec3(queued[0], queued[1], queued[2])
+      res.depth = queued[3]
+      res.pos = deep_pos[s]
+      res = checked_answer(a, b, ms, res, scale, mpr_options)
+      value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+      if warm_start:
+        key = geoms[0] * geom_type.shape[0] + geoms[1]
+        stored = warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[0], worldid, key, value)
+        if stored >= 0:
+          ws_slot_checked[worldid, stored] = ws_stamp[0]
+      if wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
+        slot = wp.atomic_add(patch_count, 0, 1)
+        patch_pair[slot] = cid
+        patch_result[slot] = value
+        patch_pos[slot] = res.pos
+        continue
+      extra = Patch()
+      extra.n = 0
+      write_pair_contacts(
+        res, extra, 0.0, 0.0, 1, band, naconmax_in, margin, gap, condim, friction, solref, solreffriction, solimp,
+        adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out, contact_frame_out,
+        contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
+        contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
+        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+      )
+
+  return deep_pair_kernel
 
 
 def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota: ContactQuota) -> None:
@@ -489,13 +497,13 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
     return
   nthread = max(1, min(b.pair.shape[0], GRID_THREADS))
   wp.launch(
-    deep_pair_kernel,
+    deep_pair_kernel(SUPPORT_MODE_ID[opt.support_mode]),
     dim=nthread,
     inputs=[
       m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
       m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
       m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-      m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, SUPPORT_MODE_ID[opt.support_mode],
+      m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
       settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
       opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
       b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,

@@ -7,7 +7,9 @@ gives the contacts (clip_faces). This module owns those device functions (faces,
 corner choice, the ``Manifold`` slots) for multicontact_pass.py's kernels; the tilts, for the
 other pairs, are multicontact.py's. It launches nothing.
 """
+import functools
 import math
+from types import SimpleNamespace
 
 import warp as wp
 from mujoco_warp._src.collision_gjk import EDGE_TOL
@@ -18,7 +20,7 @@ from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.multicontact import ON_FACE_TOL
 from mjx_supportfield.multicontact import _polygon_toward
 from mjx_supportfield.support import hull_point
-from mjx_supportfield.support import mesh_support_index
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -169,63 +171,6 @@ def _no_face() -> Face:
   f.normal = wp.vec3(0.0)
   f.p0 = wp.vec3(0.0)
   f.p1 = wp.vec3(0.0)
-  return f
-
-
-@wp.func
-def _flat_face(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
-  """The flat face of s whose outward normal is nearest to world direction u (a box face, a
-  cylinder's end, a mesh's hull polygon around its support vertex); kind FACE_NONE where s has
-  none."""
-  lu = wp.transpose(s.rot) @ u
-  f = _no_face()
-  local = wp.vec3(0.0)
-  if s.gtype == GeomType.BOX:
-    k = wp.where(wp.abs(lu[1]) > wp.abs(lu[0]), 1, 0)
-    k = wp.where(wp.abs(lu[2]) > wp.abs(_component(lu, k)), 2, k)
-    sign = wp.where(_component(lu, k) >= 0.0, 1.0, -1.0)
-    local = _along_axis(k, sign)
-    f.kind = FACE_BOX
-    f.index = 2 * k + wp.where(sign > 0.0, 0, 1)
-    f.nvert = 4
-  elif s.gtype == GeomType.CYLINDER:
-    sign = wp.where(lu[2] >= 0.0, 1.0, -1.0)
-    local = wp.vec3(0.0, 0.0, sign)
-    f.kind = FACE_DISK
-    f.index = wp.where(sign > 0.0, 0, 1)
-    f.nvert = DISK_CORNERS
-  elif s.gtype == GeomType.MESH:
-    poly = _polygon_toward(ms, s.mesh, mesh_support_index(ms, s.mesh, lu, mode), lu)
-    if poly >= 0:
-      local = ms.poly_normal[poly]
-      f.kind = FACE_MESH
-      f.index = poly
-      f.nvert = ms.poly_vert_num[poly]
-  f.normal = s.rot @ local
-  return f
-
-
-@wp.func
-def _incident(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> Face:
-  """The feature of s facing world direction u (toward the reference face): its face nearest u,
-  or for a cylinder lying on its side or a capsule the line of its surface along u; kind
-  FACE_NONE where s meets the reference face in a point of a curved surface."""
-  if s.gtype == GeomType.BOX or s.gtype == GeomType.MESH:
-    return _flat_face(s, ms, u, mode)
-  f = _no_face()
-  lu = wp.transpose(s.rot) @ u
-  if s.gtype == GeomType.CYLINDER and wp.abs(lu[2]) >= FACE_TOL:
-    return _flat_face(s, ms, u, mode)
-  if (s.gtype == GeomType.CYLINDER or s.gtype == GeomType.CAPSULE) and wp.abs(lu[2]) <= EDGE_TOL:
-    axis = wp.vec3(0.0, 0.0, s.size[1])
-    side = s.size[0] * lu
-    if s.gtype == GeomType.CYLINDER:
-      side = s.size[0] * wp.normalize(wp.vec3(lu[0], lu[1], 0.0))
-    f.kind = FACE_SEGMENT
-    f.nvert = 2
-    f.normal = u
-    f.p0 = side - axis
-    f.p1 = side + axis
   return f
 
 
@@ -686,140 +631,202 @@ def face_code(f: Face) -> int:
   return f.index * 8 + f.kind
 
 
-@wp.func
-def _face_from_code(s: Shape, ms: MeshSupport, code: int, toward: wp.vec3) -> Face:
-  """The face of s that face_code gave ``code``; a segment is found again facing world
-  direction ``toward``."""
-  kind = code & 7
-  if kind == FACE_SEGMENT:
-    return _incident(s, ms, toward, 0)
-  f = _no_face()
-  f.kind = kind
-  f.index = code >> 3
-  f.nvert = 4
-  if kind == FACE_DISK:
-    f.nvert = DISK_CORNERS
-  elif kind == FACE_MESH:
-    f.nvert = ms.poly_vert_num[f.index]
-  local = _local_normal(ms, f)
-  f.normal = s.rot @ local
-  return f
+@functools.lru_cache(maxsize=None)
+def faceclip_funcs(mode: int) -> SimpleNamespace:
+  """Face clipping's device functions on the support functions of support mode ``mode``
+  (support_funcs; a mesh's face is the hull polygon around its support vertex): ``face_pair``
+  and ``clip_faces``."""
+  mesh_support_index = support_funcs(mode).mesh_support_index
 
+  @wp.func
+  def _flat_face(s: Shape, ms: MeshSupport, u: wp.vec3) -> Face:
+    """The flat face of s whose outward normal is nearest to world direction u (a box face, a
+    cylinder's end, a mesh's hull polygon around its support vertex); kind FACE_NONE where s has
+    none."""
+    lu = wp.transpose(s.rot) @ u
+    f = _no_face()
+    local = wp.vec3(0.0)
+    if s.gtype == GeomType.BOX:
+      k = wp.where(wp.abs(lu[1]) > wp.abs(lu[0]), 1, 0)
+      k = wp.where(wp.abs(lu[2]) > wp.abs(_component(lu, k)), 2, k)
+      sign = wp.where(_component(lu, k) >= 0.0, 1.0, -1.0)
+      local = _along_axis(k, sign)
+      f.kind = FACE_BOX
+      f.index = 2 * k + wp.where(sign > 0.0, 0, 1)
+      f.nvert = 4
+    elif s.gtype == GeomType.CYLINDER:
+      sign = wp.where(lu[2] >= 0.0, 1.0, -1.0)
+      local = wp.vec3(0.0, 0.0, sign)
+      f.kind = FACE_DISK
+      f.index = wp.where(sign > 0.0, 0, 1)
+      f.nvert = DISK_CORNERS
+    elif s.gtype == GeomType.MESH:
+      poly = _polygon_toward(ms, s.mesh, mesh_support_index(ms, s.mesh, lu), lu)
+      if poly >= 0:
+        local = ms.poly_normal[poly]
+        f.kind = FACE_MESH
+        f.index = poly
+        f.nvert = ms.poly_vert_num[poly]
+    f.normal = s.rot @ local
+    return f
 
-@wp.func
-def face_pair(a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3) -> wp.vec3i:
-  """Whether A and B touch face on feature along the first contact's normal (from A to B): the
-  flat face of one of them along it (within MuJoCo's multi-CCD tolerance FACE_TOL) is the
-  reference, the other shape's feature facing it the incident one. Where both shapes offer such
-  a face and the two are parallel (within FACE_TOL), A's is the reference, as in MuJoCo.
-  Returns (1 where the reference is B's, else 0; the reference's face_code; the incident's), or
-  x = -1 where the pair is left to the tilts: neither has a face there, the other shape meets
-  it in a point of a curved surface, or the polygons are over FACE_PAIR_BUDGET."""
-  none = wp.vec3i(-1, 0, 0)
-  fa = _flat_face(a, ms, normal, mode)
-  fb = _flat_face(b, ms, -normal, mode)
-  ca = wp.where(fa.kind != FACE_NONE, wp.dot(fa.normal, normal), -2.0)
-  cb = wp.where(fb.kind != FACE_NONE, wp.dot(fb.normal, -normal), -2.0)
-  if wp.max(ca, cb) < FACE_TOL:
-    return none
-  # a face on a face (MuJoCo's test: the two faces anti-parallel within FACE_TOL): A's is the
-  # reference, as in MuJoCo; else the face along the normal
-  face_face = ca >= FACE_TOL and cb >= FACE_TOL and wp.dot(fa.normal, fb.normal) <= -FACE_TOL
-  ref_is_b = not (ca >= FACE_TOL and (face_face or ca >= cb))
-  ref = fa
-  inc = _no_face()
-  if ref_is_b:
-    ref = fb
-    inc = _incident(a, ms, -fb.normal, mode)
-  else:
-    inc = _incident(b, ms, -fa.normal, mode)
-  if inc.kind == FACE_NONE or ref.nvert * inc.nvert > FACE_PAIR_BUDGET:
-    return none
-  return wp.vec3i(wp.where(ref_is_b, 1, 0), face_code(ref), face_code(inc))
+  @wp.func
+  def _incident(s: Shape, ms: MeshSupport, u: wp.vec3) -> Face:
+    """The feature of s facing world direction u (toward the reference face): its face nearest u,
+    or for a cylinder lying on its side or a capsule the line of its surface along u; kind
+    FACE_NONE where s meets the reference face in a point of a curved surface."""
+    if s.gtype == GeomType.BOX or s.gtype == GeomType.MESH:
+      return _flat_face(s, ms, u)
+    f = _no_face()
+    lu = wp.transpose(s.rot) @ u
+    if s.gtype == GeomType.CYLINDER and wp.abs(lu[2]) >= FACE_TOL:
+      return _flat_face(s, ms, u)
+    if (s.gtype == GeomType.CYLINDER or s.gtype == GeomType.CAPSULE) and wp.abs(lu[2]) <= EDGE_TOL:
+      axis = wp.vec3(0.0, 0.0, s.size[1])
+      side = s.size[0] * lu
+      if s.gtype == GeomType.CYLINDER:
+        side = s.size[0] * wp.normalize(wp.vec3(lu[0], lu[1], 0.0))
+      f.kind = FACE_SEGMENT
+      f.nvert = 2
+      f.normal = u
+      f.p0 = side - axis
+      f.p1 = side + axis
+    return f
 
+  @wp.func
+  def _face_from_code(s: Shape, ms: MeshSupport, code: int, toward: wp.vec3) -> Face:
+    """The face of s that face_code gave ``code``; a segment is found again facing world
+    direction ``toward``."""
+    kind = code & 7
+    if kind == FACE_SEGMENT:
+      return _incident(s, ms, toward)
+    f = _no_face()
+    f.kind = kind
+    f.index = code >> 3
+    f.nvert = 4
+    if kind == FACE_DISK:
+      f.nvert = DISK_CORNERS
+    elif kind == FACE_MESH:
+      f.nvert = ms.poly_vert_num[f.index]
+    local = _local_normal(ms, f)
+    f.normal = s.rot @ local
+    return f
 
-@wp.func
-def clip_faces(a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: float, max_contacts: int,
-               spacing: float, faces: wp.vec3i) -> Manifold:
-  """The contacts of A and B by face clipping on the faces face_pair found (``faces``): the
-  incident feature clipped to the reference face's side planes, its corners within the margin
-  band of the reference plane (module notes), at most max_contacts. Status TILTS where no corner
-  lies within the band (not the face the first contact is on) or the incident face stands on
-  edge.
-
-  A is grown by its inflate (the margin band, as the narrow phase poses it); the faces are the
-  true ones and the band widens the height at which a corner still counts. ``scale``: the pair's
-  size (posed_pair), for tolerances; ``spacing``: corners closer are one.
-  """
-  out = Manifold()
-  out.status = TILTS
-  out.n = 0
-  out.ref_is_b = False
-  out.first = -1
-  ref_is_b = faces[0] == 1
-  band = a.inflate
-  bare = a
-  bare.inflate = 0.0
-  ref_shape = bare
-  inc_shape = b
-  if ref_is_b:
-    ref_shape = b
-    inc_shape = bare
-  ref = _face_from_code(ref_shape, ms, faces[1], wp.vec3(0.0))
-  inc = _face_from_code(inc_shape, ms, faces[2], -ref.normal)
-  # everything in the reference face's frame (_face_frame): the reference corners across it,
-  # the incident corners with their height
-  frame = _face_frame(ref_shape, ref, ms)
-  to_face = wp.quat_from_matrix(frame @ (wp.transpose(ref_shape.rot) @ inc_shape.rot))
-  shift = frame @ (wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos))
-  plane_offset = (frame @ _corner(ref_shape, ms, ref, 0))[2]
-  max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
-  if inc.kind == FACE_SEGMENT:
-    out = _segment_manifold(ref_shape, ref, inc, ms, frame, to_face, shift, plane_offset, band, spacing,
-                            ON_FACE_TOL * scale)
-  else:
-    if wp.abs(_incident_plane(inc_shape, inc, ms, to_face, shift)[2]) < 1.0e-3:
-      return out  # the incident face stands on edge: no polygon to clip
-    picks = _stream_polygon(ref_shape, ref, inc_shape, inc, ms, frame, to_face, shift, plane_offset, band, spacing,
-                            ON_FACE_TOL * scale)
-    if picks.whole and picks.n > max_contacts and max_contacts >= 4:
-      # the incident polygon lies on the reference face uncut: MuJoCo's clipped polygon is that
-      # polygon, each of the reference face's side planes having moved its start on by one
-      # corner, and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
-      start = ref.nvert % inc.nvert
-      quad = _polygon_quad(inc_shape, inc, ms, to_face, shift, start)
-      out.status = CLIPPED
-      for k in range(4):
-        x = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + quad[k]) % inc.nvert)
-        out = _put(out, x, x[2] - plane_offset, 0.0, 4)
+  @wp.func
+  def face_pair(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3) -> wp.vec3i:
+    """Whether A and B touch face on feature along the first contact's normal (from A to B): the
+    flat face of one of them along it (within MuJoCo's multi-CCD tolerance FACE_TOL) is the
+    reference, the other shape's feature facing it the incident one. Where both shapes offer such
+    a face and the two are parallel (within FACE_TOL), A's is the reference, as in MuJoCo.
+    Returns (1 where the reference is B's, else 0; the reference's face_code; the incident's), or
+    x = -1 where the pair is left to the tilts: neither has a face there, the other shape meets
+    it in a point of a curved surface, or the polygons are over FACE_PAIR_BUDGET."""
+    none = wp.vec3i(-1, 0, 0)
+    fa = _flat_face(a, ms, normal)
+    fb = _flat_face(b, ms, -normal)
+    ca = wp.where(fa.kind != FACE_NONE, wp.dot(fa.normal, normal), -2.0)
+    cb = wp.where(fb.kind != FACE_NONE, wp.dot(fb.normal, -normal), -2.0)
+    if wp.max(ca, cb) < FACE_TOL:
+      return none
+    # a face on a face (MuJoCo's test: the two faces anti-parallel within FACE_TOL): A's is the
+    # reference, as in MuJoCo; else the face along the normal
+    face_face = ca >= FACE_TOL and cb >= FACE_TOL and wp.dot(fa.normal, fb.normal) <= -FACE_TOL
+    ref_is_b = not (ca >= FACE_TOL and (face_face or ca >= cb))
+    ref = fa
+    inc = _no_face()
+    if ref_is_b:
+      ref = fb
+      inc = _incident(a, ms, -fb.normal)
     else:
-      out = _chosen(picks, plane_offset, _incident_plane(inc_shape, inc, ms, to_face, shift), spacing, max_contacts,
-                    DEEPEST_MARGIN * first.depth)
-  if out.n == 0:
+      inc = _incident(b, ms, -fa.normal)
+    if inc.kind == FACE_NONE or ref.nvert * inc.nvert > FACE_PAIR_BUDGET:
+      return none
+    return wp.vec3i(wp.where(ref_is_b, 1, 0), face_code(ref), face_code(inc))
+
+  @wp.func
+  def clip_faces(a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: float, max_contacts: int,
+                 spacing: float, faces: wp.vec3i) -> Manifold:
+    """The contacts of A and B by face clipping on the faces face_pair found (``faces``): the
+    incident feature clipped to the reference face's side planes, its corners within the margin
+    band of the reference plane (module notes), at most max_contacts. Status TILTS where no corner
+    lies within the band (not the face the first contact is on) or the incident face stands on
+    edge.
+
+    A is grown by its inflate (the margin band, as the narrow phase poses it); the faces are the
+    true ones and the band widens the height at which a corner still counts. ``scale``: the pair's
+    size (posed_pair), for tolerances; ``spacing``: corners closer are one.
+    """
+    out = Manifold()
     out.status = TILTS
-    return out  # nothing within the band: not the face the first contact is on
-  # each contact midway between its corner and the corner's foot on the plane, in the reference
-  # shape's frame
-  frame = _face_frame(ref_shape, ref, ms)
-  for k in range(out.n):
-    x = manifold_pos(out, k)
-    out = _set_pos(out, k, wp.transpose(frame) @ wp.vec3(x[0], x[1], x[2] - 0.5 * manifold_dist(out, k)))
-  # no corner deeper than the first contact; the deepest corner carries its depth (exact where
-  # the corners' is not: a round end's deepest point lies between two corners of its 16-gon)
-  floor = band - first.depth
-  deepest = int(0)
-  for k in range(out.n):
-    out = _set_dist(out, k, wp.max(manifold_dist(out, k), floor))
-    if manifold_dist(out, k) < manifold_dist(out, deepest):
-      deepest = k
-  out.ref_is_b = ref_is_b
-  out.first = -1
-  if manifold_dist(out, deepest) > floor + MISSED_DEPTH * first.depth:
-    # the corners miss the first contact (an edge crossing the reference face's rim beside the
-    # incident face): it takes the last place
-    out.first = wp.min(out.n, max_contacts - 1)
-    out = _set_dist(out, out.first, floor)
-    out.n = out.first + 1
-  else:
-    out = _set_dist(out, deepest, floor)
-  return out
+    out.n = 0
+    out.ref_is_b = False
+    out.first = -1
+    ref_is_b = faces[0] == 1
+    band = a.inflate
+    bare = a
+    bare.inflate = 0.0
+    ref_shape = bare
+    inc_shape = b
+    if ref_is_b:
+      ref_shape = b
+      inc_shape = bare
+    ref = _face_from_code(ref_shape, ms, faces[1], wp.vec3(0.0))
+    inc = _face_from_code(inc_shape, ms, faces[2], -ref.normal)
+    # everything in the reference face's frame (_face_frame): the reference corners across it,
+    # the incident corners with their height
+    frame = _face_frame(ref_shape, ref, ms)
+    to_face = wp.quat_from_matrix(frame @ (wp.transpose(ref_shape.rot) @ inc_shape.rot))
+    shift = frame @ (wp.transpose(ref_shape.rot) @ (inc_shape.pos - ref_shape.pos))
+    plane_offset = (frame @ _corner(ref_shape, ms, ref, 0))[2]
+    max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
+    if inc.kind == FACE_SEGMENT:
+      out = _segment_manifold(ref_shape, ref, inc, ms, frame, to_face, shift, plane_offset, band, spacing,
+                              ON_FACE_TOL * scale)
+    else:
+      if wp.abs(_incident_plane(inc_shape, inc, ms, to_face, shift)[2]) < 1.0e-3:
+        return out  # the incident face stands on edge: no polygon to clip
+      picks = _stream_polygon(ref_shape, ref, inc_shape, inc, ms, frame, to_face, shift, plane_offset, band, spacing,
+                              ON_FACE_TOL * scale)
+      if picks.whole and picks.n > max_contacts and max_contacts >= 4:
+        # the incident polygon lies on the reference face uncut: MuJoCo's clipped polygon is that
+        # polygon, each of the reference face's side planes having moved its start on by one
+        # corner, and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
+        start = ref.nvert % inc.nvert
+        quad = _polygon_quad(inc_shape, inc, ms, to_face, shift, start)
+        out.status = CLIPPED
+        for k in range(4):
+          x = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + quad[k]) % inc.nvert)
+          out = _put(out, x, x[2] - plane_offset, 0.0, 4)
+      else:
+        out = _chosen(picks, plane_offset, _incident_plane(inc_shape, inc, ms, to_face, shift), spacing, max_contacts,
+                      DEEPEST_MARGIN * first.depth)
+    if out.n == 0:
+      out.status = TILTS
+      return out  # nothing within the band: not the face the first contact is on
+    # each contact midway between its corner and the corner's foot on the plane, in the reference
+    # shape's frame
+    frame = _face_frame(ref_shape, ref, ms)
+    for k in range(out.n):
+      x = manifold_pos(out, k)
+      out = _set_pos(out, k, wp.transpose(frame) @ wp.vec3(x[0], x[1], x[2] - 0.5 * manifold_dist(out, k)))
+    # no corner deeper than the first contact; the deepest corner carries its depth (exact where
+    # the corners' is not: a round end's deepest point lies between two corners of its 16-gon)
+    floor = band - first.depth
+    deepest = int(0)
+    for k in range(out.n):
+      out = _set_dist(out, k, wp.max(manifold_dist(out, k), floor))
+      if manifold_dist(out, k) < manifold_dist(out, deepest):
+        deepest = k
+    out.ref_is_b = ref_is_b
+    out.first = -1
+    if manifold_dist(out, deepest) > floor + MISSED_DEPTH * first.depth:
+      # the corners miss the first contact (an edge crossing the reference face's rim beside the
+      # incident face): it takes the last place
+      out.first = wp.min(out.n, max_contacts - 1)
+      out = _set_dist(out, out.first, floor)
+      out.n = out.first + 1
+    else:
+      out = _set_dist(out, deepest, floor)
+    return out
+
+  return SimpleNamespace(face_pair=face_pair, clip_faces=clip_faces)

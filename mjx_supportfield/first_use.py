@@ -69,10 +69,11 @@ def _rough(seconds: float) -> str:
 
 
 def _describe(module) -> str:
-  """A module's name for people: its Python module, and for a one-kernel module that a factory
-  made (Warp names those ``<factory>__locals__<kernel>_<hash>``) the factory and the kernel."""
+  """A module's name for people: its Python module (with the support mode, for a stage's module
+  of one mode: ``<module>.<mode>``), and for a one-kernel module that a factory made (Warp names
+  those ``<factory>__locals__<kernel>_<hash>``) the factory and the kernel."""
   kernels = list(module.kernels.values())
-  if len(kernels) == 1 and module.name != kernels[0].func.__module__:
+  if len(kernels) == 1 and not module.name.startswith(kernels[0].func.__module__):
     func = kernels[0].func
     return f"{func.__module__}.{func.__qualname__.replace('.<locals>', '')}"
   return module.name

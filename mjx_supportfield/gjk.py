@@ -22,6 +22,9 @@ directions that a face or an edge of a box, mesh, cylinder or capsule core faces
 the same way every time. All loops are bounded and every threshold is relative to ``scale``.
 """
 
+import functools
+from types import SimpleNamespace
+
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
@@ -29,7 +32,7 @@ from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import Vertex
 from mjx_supportfield.mpr import miss
 from mjx_supportfield.support import count_supports
-from mjx_supportfield.support import support_world
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -105,19 +108,6 @@ def _nudge(d: wp.vec3) -> wp.vec3:
   if wp.length(t) < 0.1 * wp.length(d):
     t = wp.cross(d, wp.vec3(0.8, -0.6, 0.0))
   return wp.normalize(d) + TIE_ANGLE * wp.normalize(t)
-
-
-@wp.func
-def _support(a: Shape, b: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> Vertex:
-  """Support point of A - B for direction d, with the shapes' own points."""
-  dd = d
-  if _ambiguous(a, ms, d) or _ambiguous(b, ms, -d):
-    dd = _nudge(d)
-  out = Vertex()
-  out.a = support_world(a, ms, dd, mode)
-  out.b = support_world(b, ms, -dd, mode)
-  out.v = out.a - out.b
-  return out
 
 
 @wp.func
@@ -306,97 +296,6 @@ def _point_on_a(s: Simplex) -> wp.vec3:
 # --- GJK ----------------------------------------------------------------------------------
 
 
-@wp.func
-def _gjk(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int, cutoff: float
-         ) -> GjkResult:
-  """Distance of A and B by GJK; returns as soon as it is proven to exceed cutoff (dist is then a lower bound)."""
-  eps = EPS * scale
-  atol = tol * scale
-  s = Simplex()
-  s.n = 0
-  v = a.center - b.center  # a point of A - B: the first search direction
-  if wp.length(v) < eps:
-    v = wp.vec3(eps, 0.0, 0.0)
-  vn = float(wp.length(v))
-  res = GjkResult()
-  overlap = int(0)
-  for _ in range(iterations):
-    w = _support(a, b, ms, -v / vn, mode)
-    lower = wp.dot(v, w.v) / vn  # every point x of A - B has x . v / |v| >= lower
-    if lower > cutoff:
-      res.separated = 1
-      res.dist = lower
-      res.simplex = s
-      return res
-    if s.n > 0 and vn - lower <= atol:
-      break
-    dup = bool(False)
-    for i in range(s.n):
-      if wp.length(s.v[i] - w.v) <= eps:
-        dup = True
-    if dup:
-      break
-    prev = s
-    s.v[s.n] = w.v
-    s.a[s.n] = w.a
-    s.n += 1
-    s = _reduce(s, eps)
-    vnew = _point(s)
-    vnew_n = wp.length(vnew)
-    if s.n == 4 or vnew_n <= eps:
-      overlap = 1
-      v = vnew
-      vn = vnew_n
-      break
-    if prev.n > 0 and vnew_n >= vn:
-      s = prev  # rounding: no progress left
-      break
-    v = vnew
-    vn = vnew_n
-
-  res.simplex = s
-  res.pa = _point_on_a(s)
-  res.pb = res.pa - _point(s)
-  if overlap == 1:
-    res.separated = 0
-    res.dist = 0.0
-    return res
-  res.separated = 1
-  res.dist = vn
-  res.normal = -v / vn
-  if s.n == 3:
-    # a face of A - B: its plane is better defined than the direction of a short v
-    n = wp.cross(s.v[1] - s.v[0], s.v[2] - s.v[0])
-    if wp.length(n) > scale * vn:
-      n = wp.normalize(n)
-      if wp.dot(n, v) > 0.0:
-        n = -n
-      res.normal = n
-      res.dist = -wp.dot(n, s.v[0])
-  return res
-
-
-@wp.func
-def gjk_distance(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int) -> GjkResult:
-  """Distance and nearest points of A and B (inflate included) by GJK.
-
-  separated == 0 (dist 0) when they overlap or touch (closer than EPS x scale). scale: a
-  length of the pair (thresholds are relative to it); tol: convergence tolerance relative to
-  scale; iterations: GJK's iteration cap.
-  """
-  ra = _rim(a)
-  rb = _rim(b)
-  res = _gjk(_core(a), _core(b), ms, mode, scale, tol, iterations, FAR)
-  if res.separated == 0 or res.dist <= ra + rb + EPS * scale:
-    res.separated = 0
-    res.dist = 0.0
-    return res
-  res.dist -= ra + rb
-  res.pa += ra * res.normal
-  res.pb -= rb * res.normal
-  return res
-
-
 # --- EPA ----------------------------------------------------------------------------------
 
 
@@ -431,34 +330,6 @@ def _off_hull(s: Simplex, p: wp.vec3) -> float:
 
 
 @wp.func
-def _grow(a: Shape, b: Shape, ms: MeshSupport, mode: int, s: Simplex, eps: float) -> Simplex:
-  """s completed to a tetrahedron (n == 4) by the supports farthest from its affine hull.
-
-  Adding points keeps the origin inside; n stays below 4 where A - B is flat (thinner than eps).
-  """
-  out = s
-  for _ in range(3):
-    if out.n == 0 or out.n >= 4:
-      break
-    best = Vertex()
-    best_h = float(0.0)
-    for k in range(6):
-      if out.n == 3 and k >= 2:
-        break
-      w = _support(a, b, ms, _probe(out, k), mode)
-      h = _off_hull(out, w.v)
-      if h > best_h:
-        best_h = h
-        best = w
-    if best_h <= eps:
-      break
-    out.v[out.n] = best.v
-    out.a[out.n] = best.a
-    out.n += 1
-  return out
-
-
-@wp.func
 def _plane(p: wp.vec3, q: wp.vec3, r: wp.vec3, eps: float) -> wp.vec4:
   """Unit normal and origin distance of triangle pqr (counter-clockwise seen from outside).
 
@@ -477,206 +348,6 @@ def _plane(p: wp.vec3, q: wp.vec3, r: wp.vec3, eps: float) -> wp.vec4:
 def _sees(plane: wp.vec4, p: wp.vec3, eps: float) -> bool:
   """Whether p lies in front of a face (a sliver, whose plane is unknown, counts as seen)."""
   return plane[3] >= FAR or wp.dot(wp.vec3(plane[0], plane[1], plane[2]), p) - plane[3] > eps
-
-
-@wp.func
-def _epa(a: Shape, b: Shape, ms: MeshSupport, mode: int, start: Simplex, scale: float, tol: float, iterations: int
-         ) -> EpaResult:
-  """Penetration of overlapping A and B: EPA from a GJK simplex that holds the origin.
-
-  Faces live in slots with their vertex ids (counter-clockwise seen from outside), the face
-  across each edge, and a state: 0 free, 1 on the polytope, 2 seen from the new point. The
-  seen faces are flood-filled from the nearest face, so they form one patch; its border (the
-  horizon) must be a single loop, else the step is dropped and EPA stops.
-  """
-  eps = EPS * scale
-  atol = tol * scale
-  res = EpaResult()
-  res.ok = 0
-  s = _grow(a, b, ms, mode, start, eps)
-  if s.n < 4:
-    if s.n == 3:  # A - B is flat around the origin: no depth across its plane
-      res.normal = wp.normalize(wp.cross(s.v[1] - s.v[0], s.v[2] - s.v[0]))
-    return res
-
-  verts = _verts()
-  averts = _verts()
-  planes = _planes()
-  faces = _face_ints()
-  adj = _face_ints()  # adj[3f + e]: the face across edge e, faces[3f + e] -> faces[3f + (e + 1) % 3]
-  state = _face_flags()
-  seen = _face_flags()  # flood-fill queue of the seen faces
-  horizon = _horizon_ints()  # per horizon edge: its two vertices and the face outside it
-  after = _horizon_flags()  # per horizon edge: the edge that follows it on the loop
-  slot = _horizon_flags()  # per horizon edge: the slot of its new face
-  # the tetrahedron: face f is opposite vertex f; across its edge e lies the face opposite
-  # the face's third vertex
-  for i in range(4):
-    verts[i] = s.v[i]
-    averts[i] = s.a[i]
-  for f in range(4):
-    i = (f + 1) % 4
-    j = (f + 2) % 4
-    k = (f + 3) % 4
-    if wp.dot(wp.cross(s.v[j] - s.v[i], s.v[k] - s.v[i]), s.v[f] - s.v[i]) > 0.0:
-      j = (f + 3) % 4
-      k = (f + 2) % 4
-    faces[3 * f] = i
-    faces[3 * f + 1] = j
-    faces[3 * f + 2] = k
-    adj[3 * f] = k
-    adj[3 * f + 1] = i
-    adj[3 * f + 2] = j
-    state[f] = 1
-    planes[f] = _plane(s.v[i], s.v[j], s.v[k], eps)
-  nv = int(4)
-  nslots = int(4)  # slots in use or freed
-  nlive = int(4)  # faces on the polytope
-
-  best = wp.vec4(0.0, 0.0, 0.0, -FAR)  # plane of the nearest face so far, and its vertices
-  bi = int(0)
-  bj = int(0)
-  bk = int(0)
-  for _ in range(iterations):
-    fmin = int(0)
-    dmin = float(2.0 * FAR)
-    for f in range(nslots):
-      if state[f] == 1 and planes[f, 3] < dmin:
-        fmin = f
-        dmin = planes[f, 3]
-    if planes[fmin, 3] < best[3] - eps:
-      break  # the nearest face only recedes: rounding broke the polytope, keep the last good face
-    best = planes[fmin]
-    bi = faces[3 * fmin]
-    bj = faces[3 * fmin + 1]
-    bk = faces[3 * fmin + 2]
-    n = wp.vec3(best[0], best[1], best[2])
-    w = _support(a, b, ms, n, mode)
-    if wp.dot(w.v, n) - best[3] <= atol or nv == EPA_VERTS:
-      break
-
-    # flood-fill the faces that see w, from the nearest one
-    state[fmin] = 2
-    seen[0] = fmin
-    nseen = int(1)
-    head = int(0)
-    for _ in range(EPA_FACES):  # each face enters the queue once
-      if head == nseen:
-        break
-      f = seen[head]
-      head += 1
-      for e in range(3):
-        g = adj[3 * f + e]
-        if state[g] == 1 and _sees(planes[g], w.v, eps):
-          state[g] = 2
-          seen[nseen] = g
-          nseen += 1
-    # the horizon: edges between a seen face and an unseen one
-    ne = int(0)
-    ok = bool(True)
-    for q in range(nseen):
-      f = seen[q]
-      for e in range(3):
-        g = adj[3 * f + e]
-        if state[g] != 2:
-          if ne < EPA_HORIZON:
-            horizon[3 * ne] = faces[3 * f + e]
-            horizon[3 * ne + 1] = faces[3 * f + (e + 1) % 3]
-            horizon[3 * ne + 2] = g
-            ne += 1
-          else:
-            ok = False
-    # it must be one loop: each edge has exactly one successor, and the walk from edge 0
-    # returns after ne steps
-    for h in range(ne):
-      after[h] = -1
-      for m in range(ne):
-        if horizon[3 * m] == horizon[3 * h + 1]:
-          if after[h] >= 0:
-            ok = False
-          after[h] = m
-      if after[h] < 0:
-        ok = False
-    if ok:
-      h = int(0)
-      for m in range(ne):
-        h = after[h]
-        if h == 0 and m < ne - 1:
-          ok = False
-      ok = ok and h == 0
-    if not ok or nlive - nseen + ne > EPA_FACES:
-      for q in range(nseen):
-        state[seen[q]] = 1
-      break
-
-    # the seen faces go; a fan of new faces joins the horizon to w
-    verts[nv] = w.v
-    averts[nv] = w.a
-    for q in range(nseen):
-      state[seen[q]] = 0
-    for h in range(ne):
-      f = int(0)
-      if h < nseen:
-        f = seen[h]
-      else:
-        f = nslots  # a slot freed by an earlier step, else a new one
-        for c in range(nslots):
-          if state[c] == 0:
-            f = c
-            break
-        if f == nslots:
-          nslots += 1
-      slot[h] = f
-      state[f] = 1
-    for h in range(ne):
-      f = slot[h]
-      i = horizon[3 * h]
-      j = horizon[3 * h + 1]
-      g = horizon[3 * h + 2]
-      faces[3 * f] = i
-      faces[3 * f + 1] = j
-      faces[3 * f + 2] = nv
-      adj[3 * f] = g
-      adj[3 * f + 1] = slot[after[h]]
-      planes[f] = _plane(verts[i], verts[j], w.v, eps)
-      for e in range(3):
-        if faces[3 * g + e] == j and faces[3 * g + (e + 1) % 3] == i:
-          adj[3 * g + e] = f
-    for h in range(ne):
-      adj[3 * slot[after[h]] + 2] = slot[h]
-    nv += 1
-    nlive += ne - nseen
-
-  n = wp.vec3(best[0], best[1], best[2])
-  # witnesses: the weights of the origin's projection onto the face
-  p = best[3] * n
-  lam = _triangle(verts[bi] - p, verts[bj] - p, verts[bk] - p)
-  foot = lam[0] * verts[bi] + lam[1] * verts[bj] + lam[2] * verts[bk]
-  if wp.length(foot - p) > eps:
-    # the projection lies off the nearest face: faces coplanar with it tie (A - B is flat there,
-    # e.g. a box's face against a mesh vertex) and the tie broke towards a face beside the
-    # projection, whose weights put the witnesses up to the flat's size away from the contact.
-    # The face that holds the projection (nearest to it) gives the witnesses instead.
-    off = wp.length(foot - p)
-    for f in range(nslots):
-      if state[f] == 1:
-        i = faces[3 * f]
-        j = faces[3 * f + 1]
-        k = faces[3 * f + 2]
-        w3 = _triangle(verts[i] - p, verts[j] - p, verts[k] - p)
-        near = w3[0] * verts[i] + w3[1] * verts[j] + w3[2] * verts[k]
-        if wp.length(near - p) < off:
-          off = wp.length(near - p)
-          lam = w3
-          bi = i
-          bj = j
-          bk = k
-  res.ok = 1
-  res.depth = best[3]
-  res.normal = n
-  res.pa = lam[0] * averts[bi] + lam[1] * averts[bj] + lam[2] * averts[bk]
-  res.pb = res.pa - (lam[0] * verts[bi] + lam[1] * verts[bj] + lam[2] * verts[bk])
-  return res
 
 
 # --- the narrow-phase entry ---------------------------------------------------------------
@@ -764,58 +435,393 @@ def _sunk_sphere(a: Shape, b: Shape, ms: MeshSupport, reach: float) -> MprResult
   return r
 
 
-@wp.func
-def gjk_epa(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int) -> MprResult:
-  """Penetration of A (grown by a.inflate) and B by GJK, and EPA where their cores overlap.
+@functools.lru_cache(maxsize=None)
+def gjk_funcs(mode: int) -> SimpleNamespace:
+  """GJK's and EPA's device functions on the support functions of support mode ``mode``
+  (support_funcs): ``gjk_distance`` and ``gjk_epa``."""
+  support_world = support_funcs(mode).support_world
 
-  Same contract as mpr_refined: hit == 0 when they are apart (by more than EPS x scale);
-  else depth (>= 0), the unit normal from A to B, and pos, the midpoint of the two surfaces'
-  witness points. scale: a length of the pair (thresholds are relative to it); tol:
-  convergence tolerance relative to scale; iterations: cap of GJK's and of EPA's loop.
-  """
-  ra = _rim(a)
-  rb = _rim(b)
-  rims = ra + rb
-  touch = EPS * scale  # closer than this is touching
-  # a sphere against a mesh: from the hull's face planes when its centre is sunk in the hull
-  # (EPA would build a polytope for what one pass over the planes answers exactly)
-  sunk = _sunk_sphere(a, b, ms, rims + touch + tol * scale)
-  if sunk.hit >= 0:
-    return sunk
-  ca = _core(a)
-  cb = _core(b)
-  g = _gjk(ca, cb, ms, mode, scale, tol, iterations, rims + touch + tol * scale)
-  depth = float(0.0)
-  n = wp.vec3(0.0)
-  pa = g.pa
-  pb = g.pb
-  if g.separated == 1:
-    if g.dist > rims + touch:
-      return miss()
-    depth = wp.max(rims - g.dist, 0.0)
-    n = g.normal
-  elif _thin(a) and _thin(b):
-    # a point / segment core meets another: A - B is flat there and its penetration is the
-    # rims, along the flat's normal
-    depth = rims
-    n = _flat_normal(a, b)
-  else:
-    e = _epa(ca, cb, ms, mode, g.simplex, scale, tol, iterations)
-    if e.ok == 1:
-      depth = wp.max(rims + e.depth, 0.0)  # touching cores: the origin may lie a rounding error outside
-      n = e.normal
-      pa = e.pa
-      pb = e.pb
+  @wp.func
+  def _support(a: Shape, b: Shape, ms: MeshSupport, d: wp.vec3) -> Vertex:
+    """Support point of A - B for direction d, with the shapes' own points."""
+    dd = d
+    if _ambiguous(a, ms, d) or _ambiguous(b, ms, -d):
+      dd = _nudge(d)
+    out = Vertex()
+    out.a = support_world(a, ms, dd)
+    out.b = support_world(b, ms, -dd)
+    out.v = out.a - out.b
+    return out
+
+  @wp.func
+  def _gjk(a: Shape, b: Shape, ms: MeshSupport, scale: float, tol: float, iterations: int, cutoff: float
+           ) -> GjkResult:
+    """Distance of A and B by GJK; returns as soon as it is proven to exceed cutoff (dist is then a lower bound)."""
+    eps = EPS * scale
+    atol = tol * scale
+    s = Simplex()
+    s.n = 0
+    v = a.center - b.center  # a point of A - B: the first search direction
+    if wp.length(v) < eps:
+      v = wp.vec3(eps, 0.0, 0.0)
+    vn = float(wp.length(v))
+    res = GjkResult()
+    overlap = int(0)
+    for _ in range(iterations):
+      w = _support(a, b, ms, -v / vn)
+      lower = wp.dot(v, w.v) / vn  # every point x of A - B has x . v / |v| >= lower
+      if lower > cutoff:
+        res.separated = 1
+        res.dist = lower
+        res.simplex = s
+        return res
+      if s.n > 0 and vn - lower <= atol:
+        break
+      dup = bool(False)
+      for i in range(s.n):
+        if wp.length(s.v[i] - w.v) <= eps:
+          dup = True
+      if dup:
+        break
+      prev = s
+      s.v[s.n] = w.v
+      s.a[s.n] = w.a
+      s.n += 1
+      s = _reduce(s, eps)
+      vnew = _point(s)
+      vnew_n = wp.length(vnew)
+      if s.n == 4 or vnew_n <= eps:
+        overlap = 1
+        v = vnew
+        vn = vnew_n
+        break
+      if prev.n > 0 and vnew_n >= vn:
+        s = prev  # rounding: no progress left
+        break
+      v = vnew
+      vn = vnew_n
+
+    res.simplex = s
+    res.pa = _point_on_a(s)
+    res.pb = res.pa - _point(s)
+    if overlap == 1:
+      res.separated = 0
+      res.dist = 0.0
+      return res
+    res.separated = 1
+    res.dist = vn
+    res.normal = -v / vn
+    if s.n == 3:
+      # a face of A - B: its plane is better defined than the direction of a short v
+      n = wp.cross(s.v[1] - s.v[0], s.v[2] - s.v[0])
+      if wp.length(n) > scale * vn:
+        n = wp.normalize(n)
+        if wp.dot(n, v) > 0.0:
+          n = -n
+        res.normal = n
+        res.dist = -wp.dot(n, s.v[0])
+    return res
+
+  @wp.func
+  def gjk_distance(a: Shape, b: Shape, ms: MeshSupport, scale: float, tol: float, iterations: int) -> GjkResult:
+    """Distance and nearest points of A and B (inflate included) by GJK.
+
+    separated == 0 (dist 0) when they overlap or touch (closer than EPS x scale). scale: a
+    length of the pair (thresholds are relative to it); tol: convergence tolerance relative to
+    scale; iterations: GJK's iteration cap.
+    """
+    ra = _rim(a)
+    rb = _rim(b)
+    res = _gjk(_core(a), _core(b), ms, scale, tol, iterations, FAR)
+    if res.separated == 0 or res.dist <= ra + rb + EPS * scale:
+      res.separated = 0
+      res.dist = 0.0
+      return res
+    res.dist -= ra + rb
+    res.pa += ra * res.normal
+    res.pb -= rb * res.normal
+    return res
+
+  @wp.func
+  def _grow(a: Shape, b: Shape, ms: MeshSupport, s: Simplex, eps: float) -> Simplex:
+    """s completed to a tetrahedron (n == 4) by the supports farthest from its affine hull.
+
+    Adding points keeps the origin inside; n stays below 4 where A - B is flat (thinner than eps).
+    """
+    out = s
+    for _ in range(3):
+      if out.n == 0 or out.n >= 4:
+        break
+      best = Vertex()
+      best_h = float(0.0)
+      for k in range(6):
+        if out.n == 3 and k >= 2:
+          break
+        w = _support(a, b, ms, _probe(out, k))
+        h = _off_hull(out, w.v)
+        if h > best_h:
+          best_h = h
+          best = w
+      if best_h <= eps:
+        break
+      out.v[out.n] = best.v
+      out.a[out.n] = best.a
+      out.n += 1
+    return out
+
+  @wp.func
+  def _epa(a: Shape, b: Shape, ms: MeshSupport, start: Simplex, scale: float, tol: float, iterations: int
+           ) -> EpaResult:
+    """Penetration of overlapping A and B: EPA from a GJK simplex that holds the origin.
+
+    Faces live in slots with their vertex ids (counter-clockwise seen from outside), the face
+    across each edge, and a state: 0 free, 1 on the polytope, 2 seen from the new point. The
+    seen faces are flood-filled from the nearest face, so they form one patch; its border (the
+    horizon) must be a single loop, else the step is dropped and EPA stops.
+    """
+    eps = EPS * scale
+    atol = tol * scale
+    res = EpaResult()
+    res.ok = 0
+    s = _grow(a, b, ms, start, eps)
+    if s.n < 4:
+      if s.n == 3:  # A - B is flat around the origin: no depth across its plane
+        res.normal = wp.normalize(wp.cross(s.v[1] - s.v[0], s.v[2] - s.v[0]))
+      return res
+
+    verts = _verts()
+    averts = _verts()
+    planes = _planes()
+    faces = _face_ints()
+    adj = _face_ints()  # adj[3f + e]: the face across edge e, faces[3f + e] -> faces[3f + (e + 1) % 3]
+    state = _face_flags()
+    seen = _face_flags()  # flood-fill queue of the seen faces
+    horizon = _horizon_ints()  # per horizon edge: its two vertices and the face outside it
+    after = _horizon_flags()  # per horizon edge: the edge that follows it on the loop
+    slot = _horizon_flags()  # per horizon edge: the slot of its new face
+    # the tetrahedron: face f is opposite vertex f; across its edge e lies the face opposite
+    # the face's third vertex
+    for i in range(4):
+      verts[i] = s.v[i]
+      averts[i] = s.a[i]
+    for f in range(4):
+      i = (f + 1) % 4
+      j = (f + 2) % 4
+      k = (f + 3) % 4
+      if wp.dot(wp.cross(s.v[j] - s.v[i], s.v[k] - s.v[i]), s.v[f] - s.v[i]) > 0.0:
+        j = (f + 3) % 4
+        k = (f + 2) % 4
+      faces[3 * f] = i
+      faces[3 * f + 1] = j
+      faces[3 * f + 2] = k
+      adj[3 * f] = k
+      adj[3 * f + 1] = i
+      adj[3 * f + 2] = j
+      state[f] = 1
+      planes[f] = _plane(s.v[i], s.v[j], s.v[k], eps)
+    nv = int(4)
+    nslots = int(4)  # slots in use or freed
+    nlive = int(4)  # faces on the polytope
+
+    best = wp.vec4(0.0, 0.0, 0.0, -FAR)  # plane of the nearest face so far, and its vertices
+    bi = int(0)
+    bj = int(0)
+    bk = int(0)
+    for _ in range(iterations):
+      fmin = int(0)
+      dmin = float(2.0 * FAR)
+      for f in range(nslots):
+        if state[f] == 1 and planes[f, 3] < dmin:
+          fmin = f
+          dmin = planes[f, 3]
+      if planes[fmin, 3] < best[3] - eps:
+        break  # the nearest face only recedes: rounding broke the polytope, keep the last good face
+      best = planes[fmin]
+      bi = faces[3 * fmin]
+      bj = faces[3 * fmin + 1]
+      bk = faces[3 * fmin + 2]
+      n = wp.vec3(best[0], best[1], best[2])
+      w = _support(a, b, ms, n)
+      if wp.dot(w.v, n) - best[3] <= atol or nv == EPA_VERTS:
+        break
+
+      # flood-fill the faces that see w, from the nearest one
+      state[fmin] = 2
+      seen[0] = fmin
+      nseen = int(1)
+      head = int(0)
+      for _ in range(EPA_FACES):  # each face enters the queue once
+        if head == nseen:
+          break
+        f = seen[head]
+        head += 1
+        for e in range(3):
+          g = adj[3 * f + e]
+          if state[g] == 1 and _sees(planes[g], w.v, eps):
+            state[g] = 2
+            seen[nseen] = g
+            nseen += 1
+      # the horizon: edges between a seen face and an unseen one
+      ne = int(0)
+      ok = bool(True)
+      for q in range(nseen):
+        f = seen[q]
+        for e in range(3):
+          g = adj[3 * f + e]
+          if state[g] != 2:
+            if ne < EPA_HORIZON:
+              horizon[3 * ne] = faces[3 * f + e]
+              horizon[3 * ne + 1] = faces[3 * f + (e + 1) % 3]
+              horizon[3 * ne + 2] = g
+              ne += 1
+            else:
+              ok = False
+      # it must be one loop: each edge has exactly one successor, and the walk from edge 0
+      # returns after ne steps
+      for h in range(ne):
+        after[h] = -1
+        for m in range(ne):
+          if horizon[3 * m] == horizon[3 * h + 1]:
+            if after[h] >= 0:
+              ok = False
+            after[h] = m
+        if after[h] < 0:
+          ok = False
+      if ok:
+        h = int(0)
+        for m in range(ne):
+          h = after[h]
+          if h == 0 and m < ne - 1:
+            ok = False
+        ok = ok and h == 0
+      if not ok or nlive - nseen + ne > EPA_FACES:
+        for q in range(nseen):
+          state[seen[q]] = 1
+        break
+
+      # the seen faces go; a fan of new faces joins the horizon to w
+      verts[nv] = w.v
+      averts[nv] = w.a
+      for q in range(nseen):
+        state[seen[q]] = 0
+      for h in range(ne):
+        f = int(0)
+        if h < nseen:
+          f = seen[h]
+        else:
+          f = nslots  # a slot freed by an earlier step, else a new one
+          for c in range(nslots):
+            if state[c] == 0:
+              f = c
+              break
+          if f == nslots:
+            nslots += 1
+        slot[h] = f
+        state[f] = 1
+      for h in range(ne):
+        f = slot[h]
+        i = horizon[3 * h]
+        j = horizon[3 * h + 1]
+        g = horizon[3 * h + 2]
+        faces[3 * f] = i
+        faces[3 * f + 1] = j
+        faces[3 * f + 2] = nv
+        adj[3 * f] = g
+        adj[3 * f + 1] = slot[after[h]]
+        planes[f] = _plane(verts[i], verts[j], w.v, eps)
+        for e in range(3):
+          if faces[3 * g + e] == j and faces[3 * g + (e + 1) % 3] == i:
+            adj[3 * g + e] = f
+      for h in range(ne):
+        adj[3 * slot[after[h]] + 2] = slot[h]
+      nv += 1
+      nlive += ne - nseen
+
+    n = wp.vec3(best[0], best[1], best[2])
+    # witnesses: the weights of the origin's projection onto the face
+    p = best[3] * n
+    lam = _triangle(verts[bi] - p, verts[bj] - p, verts[bk] - p)
+    foot = lam[0] * verts[bi] + lam[1] * verts[bj] + lam[2] * verts[bk]
+    if wp.length(foot - p) > eps:
+      # the projection lies off the nearest face: faces coplanar with it tie (A - B is flat there,
+      # e.g. a box's face against a mesh vertex) and the tie broke towards a face beside the
+      # projection, whose weights put the witnesses up to the flat's size away from the contact.
+      # The face that holds the projection (nearest to it) gives the witnesses instead.
+      off = wp.length(foot - p)
+      for f in range(nslots):
+        if state[f] == 1:
+          i = faces[3 * f]
+          j = faces[3 * f + 1]
+          k = faces[3 * f + 2]
+          w3 = _triangle(verts[i] - p, verts[j] - p, verts[k] - p)
+          near = w3[0] * verts[i] + w3[1] * verts[j] + w3[2] * verts[k]
+          if wp.length(near - p) < off:
+            off = wp.length(near - p)
+            lam = w3
+            bi = i
+            bj = j
+            bk = k
+    res.ok = 1
+    res.depth = best[3]
+    res.normal = n
+    res.pa = lam[0] * averts[bi] + lam[1] * averts[bj] + lam[2] * averts[bk]
+    res.pb = res.pa - (lam[0] * verts[bi] + lam[1] * verts[bj] + lam[2] * verts[bk])
+    return res
+
+  @wp.func
+  def gjk_epa(a: Shape, b: Shape, ms: MeshSupport, scale: float, tol: float, iterations: int) -> MprResult:
+    """Penetration of A (grown by a.inflate) and B by GJK, and EPA where their cores overlap.
+
+    Same contract as mpr_refined: hit == 0 when they are apart (by more than EPS x scale);
+    else depth (>= 0), the unit normal from A to B, and pos, the midpoint of the two surfaces'
+    witness points. scale: a length of the pair (thresholds are relative to it); tol:
+    convergence tolerance relative to scale; iterations: cap of GJK's and of EPA's loop.
+    """
+    ra = _rim(a)
+    rb = _rim(b)
+    rims = ra + rb
+    touch = EPS * scale  # closer than this is touching
+    # a sphere against a mesh: from the hull's face planes when its centre is sunk in the hull
+    # (EPA would build a polytope for what one pass over the planes answers exactly)
+    sunk = _sunk_sphere(a, b, ms, rims + touch + tol * scale)
+    if sunk.hit >= 0:
+      return sunk
+    ca = _core(a)
+    cb = _core(b)
+    g = _gjk(ca, cb, ms, scale, tol, iterations, rims + touch + tol * scale)
+    depth = float(0.0)
+    n = wp.vec3(0.0)
+    pa = g.pa
+    pb = g.pb
+    if g.separated == 1:
+      if g.dist > rims + touch:
+        return miss()
+      depth = wp.max(rims - g.dist, 0.0)
+      n = g.normal
+    elif _thin(a) and _thin(b):
+      # a point / segment core meets another: A - B is flat there and its penetration is the
+      # rims, along the flat's normal
+      depth = rims
+      n = _flat_normal(a, b)
     else:
-      depth = rims  # A - B is flat: a flat mesh against a point / segment core, or two flat meshes
-      n = e.normal
-      if wp.length(n) == 0.0:
-        n = _flat_normal(a, b)
-      elif wp.dot(n, b.center - a.center) < 0.0:
-        n = -n
-  r = MprResult()
-  r.hit = 1
-  r.depth = depth
-  r.normal = n
-  r.pos = 0.5 * (pa + ra * n + pb - rb * n)
-  return r
+      e = _epa(ca, cb, ms, g.simplex, scale, tol, iterations)
+      if e.ok == 1:
+        depth = wp.max(rims + e.depth, 0.0)  # touching cores: the origin may lie a rounding error outside
+        n = e.normal
+        pa = e.pa
+        pb = e.pb
+      else:
+        depth = rims  # A - B is flat: a flat mesh against a point / segment core, or two flat meshes
+        n = e.normal
+        if wp.length(n) == 0.0:
+          n = _flat_normal(a, b)
+        elif wp.dot(n, b.center - a.center) < 0.0:
+          n = -n
+    r = MprResult()
+    r.hit = 1
+    r.depth = depth
+    r.normal = n
+    r.pos = 0.5 * (pa + ra * n + pb - rb * n)
+    return r
+
+  return SimpleNamespace(gjk_distance=gjk_distance, gjk_epa=gjk_epa)

@@ -56,6 +56,8 @@ geometry (vertices, prisms, features, the keep-or-drop tests) is hfield_cells.py
 """
 
 import dataclasses
+import functools
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
@@ -76,8 +78,10 @@ from mjx_supportfield.mpr import MprSettings
 from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.narrowphase import GRID_THREADS
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
+from mjx_supportfield.hfield_cells import heightfield
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import mode_module
 from mjx_supportfield.hfield_window import (
   MAX_CELLS,
   NJOB,
@@ -94,17 +98,13 @@ from mjx_supportfield.hfield_window import (
   PrismCcd,
   TerrainPair,
   _terrain_pair,
-  _window,
-  _cell_jobs,
-  _job_mpr,
   _uses_ccd,
   _ccd_geom,
   _job_ccd,
-  _job_answer,
-  _plane_pass,
   _add_job_answer,
   _bits,
   _queue_cell,
+  window_funcs,
 )
 
 
@@ -117,386 +117,393 @@ from mjx_supportfield.hfield_window import (
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 
-@wp.kernel
-def hfield_jobs(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  hfield_size: wp.array(dtype=wp.vec4),
-  hfield_nrow: wp.array(dtype=int),
-  hfield_ncol: wp.array(dtype=int),
-  hfield_adr: wp.array(dtype=int),
-  hfield_data: wp.array(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  npair_in: wp.array(dtype=int),
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  nsweep: int,
-  nthread: int,
-  # Out:
-  overflow_out: wp.array(dtype=int),
-  hfield_count_out: wp.array(dtype=int),
-  hfield_pair_out: wp.array(dtype=TerrainPair),
-  hfield_job_out: wp.array(dtype=wp.vec2i),
-):
-  """First of the heightfield kernels: each heightfield - convex pair's window of cells, and its
-  MPR jobs (prisms and terrain points that pass the cheap tests), queued in cell order so that
-  hfield_mpr runs them on dense warps. hfield_count_out counts the pairs, the jobs asked for,
-  and those that found the queue full (hfield_contacts runs them in the pair's thread)."""
-  tid = wp.tid()
-  for cid in range(tid, npair_in[0], nthread):
-    geoms = pair_in[cid]
-    if geom_type[geoms[0]] != GeomType.HFIELD or geom_type[geoms[1]] == GeomType.HFIELD or (
-        geom_type[geoms[1]] == GeomType.PLANE):
-      continue
-    worldid = pair_worldid_in[cid]
-    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
-    _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
-    nrow = hfield_nrow[hf]
-    ncol = hfield_ncol[hf]
-    size = hfield_size[hf]
-    adr = hfield_adr[hf]
-    tp = _window(b, ms, support_mode, wp.max(margin + gap, 0.0), nrow, ncol, size)
-    if tp.window[0] > tp.window[1] or tp.window[2] > tp.window[3]:
-      continue
-    slot = wp.atomic_add(hfield_count_out, COUNT_PAIRS, 1)
-    if slot >= hfield_pair_out.shape[0]:  # the slots are as many as a world's heightfield pairs can be
-      wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
-      continue
-    tp.cid = cid
-    ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
-    # two sweeps over the cells (nsweep = 2, an argument so that the loop is not unrolled): the
-    # first counts the jobs, keeping the first KEPT_CELLS cells' masks, the second queues the
-    # jobs of the cells beyond those (only for pairs with more cells that have jobs)
-    kept_cell = vec_kept()
-    kept_mask = vec_kept()
-    nkept = int(0)
-    n = int(0)  # jobs counted (first sweep), then queued
-    for sweep in range(nsweep):
-      cell = int(0)
-      if sweep == 1:
-        if nkept < KEPT_CELLS or n >= tp.job_count:
-          break  # every cell with jobs was kept, or the pair's share of the queue is full
-        cell = kept_cell[KEPT_CELLS - 1] + 1
-      while cell < ncell:
-        mask = _cell_jobs(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell)
-        if mask != 0:
-          if sweep == 1:
-            n = _queue_cell(hfield_job_out, slot, tp, cell, mask, n)
-          elif nkept < KEPT_CELLS:
-            kept_cell[nkept] = cell
-            kept_mask[nkept] = mask
-            nkept += 1
-          else:
-            n += _bits(mask)
-        cell += 1
-      if sweep == 0:
-        for i in range(nkept):
-          n += _bits(kept_mask[i])
-        tp.job_total = n
-        tp.job_start = wp.atomic_add(hfield_count_out, COUNT_JOBS, n)
-        tp.job_count = wp.max(0, wp.min(n, hfield_job_out.shape[0] - tp.job_start))
-        if tp.job_count < n:  # no room in the queue: the rest run in hfield_contacts
-          wp.atomic_add(hfield_count_out, COUNT_UNQUEUED, n - tp.job_count)
-        n = int(0)
-        for i in range(nkept):
-          n = _queue_cell(hfield_job_out, slot, tp, kept_cell[i], kept_mask[i], n)
-    for j in range(tp.job_start, tp.job_start + tp.job_count):
-      if hfield_job_out[j][1] % NJOB < 2:
-        tp.nprism += 1
-    kind = COUNT_KIND + 2 * geom_type[geoms[1]]
-    wp.atomic_add(hfield_count_out, kind, tp.nprism)
-    wp.atomic_add(hfield_count_out, kind + 1, tp.job_count - tp.nprism)
-    hfield_pair_out[slot] = tp
+@functools.lru_cache(maxsize=None)
+def stage_kernels(mode: int) -> SimpleNamespace:
+  """The stage's kernels for support mode ``mode``, all in that mode's module (types.mode_module):
+  ``jobs``, ``kind_start``, ``order``, ``mpr``, ``ccd`` and ``contacts``. Three of them ask no
+  support query, but sharing the module keeps the stage one module to compile, as before."""
+  module = mode_module(__name__, mode)
+  window = window_funcs(mode)
+  _window = window._window
+  _cell_jobs = window._cell_jobs
+  _job_mpr = window._job_mpr
+  _job_answer = window._job_answer
+  _plane_pass = window._plane_pass
+
+  @wp.kernel(module=module)
+  def hfield_jobs(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    hfield_size: wp.array(dtype=wp.vec4),
+    hfield_nrow: wp.array(dtype=int),
+    hfield_ncol: wp.array(dtype=int),
+    hfield_adr: wp.array(dtype=int),
+    hfield_data: wp.array(dtype=float),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    # In:
+    ms: MeshSupport,
+    npair_in: wp.array(dtype=int),
+    pair_in: wp.array(dtype=wp.vec2i),
+    pairid_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    nsweep: int,
+    nthread: int,
+    # Out:
+    overflow_out: wp.array(dtype=int),
+    hfield_count_out: wp.array(dtype=int),
+    hfield_pair_out: wp.array(dtype=TerrainPair),
+    hfield_job_out: wp.array(dtype=wp.vec2i),
+  ):
+    """First of the heightfield kernels: each heightfield - convex pair's window of cells, and its
+    MPR jobs (prisms and terrain points that pass the cheap tests), queued in cell order so that
+    hfield_mpr runs them on dense warps. hfield_count_out counts the pairs, the jobs asked for,
+    and those that found the queue full (hfield_contacts runs them in the pair's thread)."""
+    tid = wp.tid()
+    for cid in range(tid, npair_in[0], nthread):
+      geoms = pair_in[cid]
+      if geom_type[geoms[0]] != GeomType.HFIELD or geom_type[geoms[1]] == GeomType.HFIELD or (
+          geom_type[geoms[1]] == GeomType.PLANE):
+        continue
+      worldid = pair_worldid_in[cid]
+      margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
+      _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
+      hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
+      tp = _window(b, ms, wp.max(margin + gap, 0.0), hfield)
+      if tp.window[0] > tp.window[1] or tp.window[2] > tp.window[3]:
+        continue
+      slot = wp.atomic_add(hfield_count_out, COUNT_PAIRS, 1)
+      if slot >= hfield_pair_out.shape[0]:  # the slots are as many as a world's heightfield pairs can be
+        wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
+        continue
+      tp.cid = cid
+      ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
+      # two sweeps over the cells (nsweep = 2, an argument so that the loop is not unrolled): the
+      # first counts the jobs, keeping the first KEPT_CELLS cells' masks, the second queues the
+      # jobs of the cells beyond those (only for pairs with more cells that have jobs)
+      kept_cell = vec_kept()
+      kept_mask = vec_kept()
+      nkept = int(0)
+      n = int(0)  # jobs counted (first sweep), then queued
+      for sweep in range(nsweep):
+        cell = int(0)
+        if sweep == 1:
+          if nkept < KEPT_CELLS or n >= tp.job_count:
+            break  # every cell with jobs was kept, or the pair's share of the queue is full
+          cell = kept_cell[KEPT_CELLS - 1] + 1
+        while cell < ncell:
+          mask = _cell_jobs(hfield, b, ms, tp, cell)
+          if mask != 0:
+            if sweep == 1:
+              n = _queue_cell(hfield_job_out, slot, tp, cell, mask, n)
+            elif nkept < KEPT_CELLS:
+              kept_cell[nkept] = cell
+              kept_mask[nkept] = mask
+              nkept += 1
+            else:
+              n += _bits(mask)
+          cell += 1
+        if sweep == 0:
+          for i in range(nkept):
+            n += _bits(kept_mask[i])
+          tp.job_total = n
+          tp.job_start = wp.atomic_add(hfield_count_out, COUNT_JOBS, n)
+          tp.job_count = wp.max(0, wp.min(n, hfield_job_out.shape[0] - tp.job_start))
+          if tp.job_count < n:  # no room in the queue: the rest run in hfield_contacts
+            wp.atomic_add(hfield_count_out, COUNT_UNQUEUED, n - tp.job_count)
+          n = int(0)
+          for i in range(nkept):
+            n = _queue_cell(hfield_job_out, slot, tp, kept_cell[i], kept_mask[i], n)
+      for j in range(tp.job_start, tp.job_start + tp.job_count):
+        if hfield_job_out[j][1] % NJOB < 2:
+          tp.nprism += 1
+      kind = COUNT_KIND + 2 * geom_type[geoms[1]]
+      wp.atomic_add(hfield_count_out, kind, tp.nprism)
+      wp.atomic_add(hfield_count_out, kind + 1, tp.job_count - tp.nprism)
+      hfield_pair_out[slot] = tp
 
 
-@wp.kernel
-def hfield_kind_start(
-  # In:
-  hfield_count_in: wp.array(dtype=int),
-  # Out:
-  kind_next_out: wp.array(dtype=int),
-):
-  """Where each kind of job starts in hfield_order (one thread): the counts' running sum."""
-  start = int(0)
-  for kind in range(NKIND):
-    kind_next_out[kind] = start
-    start += hfield_count_in[COUNT_KIND + kind]
+  @wp.kernel(module=module)
+  def hfield_kind_start(
+    # In:
+    hfield_count_in: wp.array(dtype=int),
+    # Out:
+    kind_next_out: wp.array(dtype=int),
+  ):
+    """Where each kind of job starts in hfield_order (one thread): the counts' running sum."""
+    start = int(0)
+    for kind in range(NKIND):
+      kind_next_out[kind] = start
+      start += hfield_count_in[COUNT_KIND + kind]
 
 
-@wp.kernel
-def hfield_order(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  # In:
-  pair_in: wp.array(dtype=wp.vec2i),
-  hfield_count_in: wp.array(dtype=int),
-  hfield_pair_in: wp.array(dtype=TerrainPair),
-  hfield_job_in: wp.array(dtype=wp.vec2i),
-  nthread: int,
-  # Out:
-  kind_next_out: wp.array(dtype=int),
-  order_out: wp.array(dtype=int),
-):
-  """The queued jobs grouped by kind (one thread a pair): each pair's prisms, then its points,
-  go to the next places of their kinds in order_out, so hfield_mpr's warps run jobs of one kind."""
-  tid = wp.tid()
-  for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
-    tp = hfield_pair_in[slot]
-    kind = 2 * geom_type[pair_in[tp.cid][1]]
-    prism = wp.atomic_add(kind_next_out, kind, tp.nprism)
-    point = wp.atomic_add(kind_next_out, kind + 1, tp.job_count - tp.nprism)
-    for j in range(tp.job_start, tp.job_start + tp.job_count):
-      if hfield_job_in[j][1] % NJOB < 2:
-        order_out[prism] = j
-        prism += 1
-      else:
-        order_out[point] = j
-        point += 1
+  @wp.kernel(module=module)
+  def hfield_order(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    # In:
+    pair_in: wp.array(dtype=wp.vec2i),
+    hfield_count_in: wp.array(dtype=int),
+    hfield_pair_in: wp.array(dtype=TerrainPair),
+    hfield_job_in: wp.array(dtype=wp.vec2i),
+    nthread: int,
+    # Out:
+    kind_next_out: wp.array(dtype=int),
+    order_out: wp.array(dtype=int),
+  ):
+    """The queued jobs grouped by kind (one thread a pair): each pair's prisms, then its points,
+    go to the next places of their kinds in order_out, so hfield_mpr's warps run jobs of one kind."""
+    tid = wp.tid()
+    for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
+      tp = hfield_pair_in[slot]
+      kind = 2 * geom_type[pair_in[tp.cid][1]]
+      prism = wp.atomic_add(kind_next_out, kind, tp.nprism)
+      point = wp.atomic_add(kind_next_out, kind + 1, tp.job_count - tp.nprism)
+      for j in range(tp.job_start, tp.job_start + tp.job_count):
+        if hfield_job_in[j][1] % NJOB < 2:
+          order_out[prism] = j
+          prism += 1
+        else:
+          order_out[point] = j
+          point += 1
 
 
-@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
-def hfield_mpr(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  hfield_size: wp.array(dtype=wp.vec4),
-  hfield_nrow: wp.array(dtype=int),
-  hfield_ncol: wp.array(dtype=int),
-  hfield_adr: wp.array(dtype=int),
-  hfield_data: wp.array(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  mpr_options: MprSettings,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  hfield_count_in: wp.array(dtype=int),
-  hfield_pair_in: wp.array(dtype=TerrainPair),
-  hfield_job_in: wp.array(dtype=wp.vec2i),
-  order_in: wp.array(dtype=int),
-  nthread: int,
-  # Out:
-  answer_out: wp.array(dtype=wp.vec4),
-  normal_out: wp.array(dtype=wp.vec3),
-):
-  """The queued terrain MPRs, one thread a job in hfield_order's order: the contact point and
-  depth (0: none) and the normal, for hfield_contacts (a box's or a mesh's prisms: hfield_ccd)."""
-  tid = wp.tid()
-  for i in range(tid, wp.min(hfield_count_in[COUNT_JOBS], hfield_job_in.shape[0]), nthread):
-    j = order_in[i]
-    job = hfield_job_in[j]
-    tp = hfield_pair_in[job[0]]
-    worldid = pair_worldid_in[tp.cid]
-    _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, pair_in[tp.cid],
-                             worldid)
-    if _uses_ccd(b, job[1]):
-      continue  # hfield_ccd's
-    answer, normal = _job_mpr(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], b, ms,
-                              support_mode, tp, job[1], mpr_options)
-    answer_out[j] = answer
-    normal_out[j] = normal
-
-
-@wp.kernel(cuda_max_registers=HEAVY_REGISTERS)
-def hfield_ccd(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  hfield_size: wp.array(dtype=wp.vec4),
-  hfield_nrow: wp.array(dtype=int),
-  hfield_ncol: wp.array(dtype=int),
-  hfield_adr: wp.array(dtype=int),
-  hfield_data: wp.array(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  # In:
-  pair_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  hfield_pair_in: wp.array(dtype=TerrainPair),
-  hfield_job_in: wp.array(dtype=wp.vec2i),
-  kind_end_in: wp.array(dtype=int),
-  order_in: wp.array(dtype=int),
-  ccd_in: PrismCcd,
-  nthread: int,
-  # Out:
-  overflow_out: wp.array(dtype=int),
-  answer_out: wp.array(dtype=wp.vec4),
-  normal_out: wp.array(dtype=wp.vec3),
-):
-  """The queued prisms of boxes and meshes by GJK/EPA (_job_ccd), one thread a job of those two
-  kinds in hfield_order's order, each thread on its own row of EPA memory (nthread rows)."""
-  tid = wp.tid()
-  for t in range(2):
-    kind = wp.where(t == 0, 2 * int(GeomType.BOX), 2 * int(GeomType.MESH))  # their prisms
-    for i in range(kind_end_in[kind - 1] + tid, kind_end_in[kind], nthread):
+  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  def hfield_mpr(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    hfield_size: wp.array(dtype=wp.vec4),
+    hfield_nrow: wp.array(dtype=int),
+    hfield_ncol: wp.array(dtype=int),
+    hfield_adr: wp.array(dtype=int),
+    hfield_data: wp.array(dtype=float),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    # In:
+    ms: MeshSupport,
+    mpr_options: MprSettings,
+    pair_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    hfield_count_in: wp.array(dtype=int),
+    hfield_pair_in: wp.array(dtype=TerrainPair),
+    hfield_job_in: wp.array(dtype=wp.vec2i),
+    order_in: wp.array(dtype=int),
+    nthread: int,
+    # Out:
+    answer_out: wp.array(dtype=wp.vec4),
+    normal_out: wp.array(dtype=wp.vec3),
+  ):
+    """The queued terrain MPRs, one thread a job in hfield_order's order: the contact point and
+    depth (0: none) and the normal, for hfield_contacts (a box's or a mesh's prisms: hfield_ccd)."""
+    tid = wp.tid()
+    for i in range(tid, wp.min(hfield_count_in[COUNT_JOBS], hfield_job_in.shape[0]), nthread):
       j = order_in[i]
       job = hfield_job_in[j]
       tp = hfield_pair_in[job[0]]
       worldid = pair_worldid_in[tp.cid]
-      geoms = pair_in[tp.cid]
-      hf = geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
-      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
-      answer, normal = _job_ccd(hfield_data, hfield_adr[hf], hfield_nrow[hf], hfield_ncol[hf], hfield_size[hf], bgeom,
-                                geom_type[geoms[1]], tp, job[1], ccd_in, tid, worldid, overflow_out)
+      _, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, pair_in[tp.cid],
+                               worldid)
+      if _uses_ccd(b, job[1]):
+        continue  # hfield_ccd's
+      hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
+      answer, normal = _job_mpr(hfield, b, ms, tp, job[1], mpr_options)
       answer_out[j] = answer
       normal_out[j] = normal
 
 
-@wp.kernel
-def hfield_contacts(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_condim: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_priority: wp.array(dtype=int),
-  geom_solmix: wp.array2d(dtype=float),
-  geom_solref: wp.array2d(dtype=wp.vec2),
-  geom_solimp: wp.array2d(dtype=vec5),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_friction: wp.array2d(dtype=wp.vec3),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  geom_adhesion: wp.array2d(dtype=float),
-  geom_aabb: wp.array3d(dtype=wp.vec3),
-  hfield_size: wp.array(dtype=wp.vec4),
-  hfield_nrow: wp.array(dtype=int),
-  hfield_ncol: wp.array(dtype=int),
-  hfield_adr: wp.array(dtype=int),
-  hfield_data: wp.array(dtype=float),
-  pair_dim: wp.array(dtype=int),
-  pair_solref: wp.array2d(dtype=wp.vec2),
-  pair_solreffriction: wp.array2d(dtype=wp.vec2),
-  pair_solimp: wp.array2d(dtype=vec5),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  pair_adhesion: wp.array2d(dtype=float),
-  pair_friction: wp.array2d(dtype=vec5),
-  opt_warn_hfield: int,
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  naconmax_in: int,
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  mpr_options: MprSettings,
-  max_contacts: int,
-  mc_tolerance: float,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  hfield_pair_in: wp.array(dtype=TerrainPair),
-  hfield_job_in: wp.array(dtype=wp.vec2i),
-  answer_in: wp.array(dtype=wp.vec4),
-  normal_in: wp.array(dtype=wp.vec3),
-  ccd_in: PrismCcd,
-  nthread: int,
-  quota: ContactQuota,
-  # Data out:
-  overflow_out: wp.array(dtype=int),
-  # Out:
-  hfield_count_out: wp.array(dtype=int),
-  # Data out:
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
-):
-  """Last of the heightfield kernels, one thread a pair of hfield_jobs: the face contacts and
-  its MPR answers in job order (running those the queue had no room for), merged
-  (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
-  tid = wp.tid()
-  row = int(-1)  # this thread's row of EPA memory, taken when it first runs GJK/EPA beyond the queue
-  for slot in range(tid, wp.min(hfield_count_out[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
-    tp = hfield_pair_in[slot]
-    cid = tp.cid
-    geoms = pair_in[cid]
-    worldid = pair_worldid_in[cid]
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-      pair_friction, pair_in, pairid_in, cid, worldid,
-    )
-    terrain, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
-    nrow = hfield_nrow[hf]
-    ncol = hfield_ncol[hf]
-    size = hfield_size[hf]
-    adr = hfield_adr[hf]
-    spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
-    cands = _plane_pass(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, spacing)
-    for j in range(tp.job_start, tp.job_start + tp.job_count):
-      cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, hfield_job_in[j][1], answer_in[j],
-                              normal_in[j], spacing, mpr_options.tolerance)
-    # the jobs the queue had no room for, in order after the queued ones
-    code = int(0)
-    if tp.job_count > 0:
-      code = hfield_job_in[tp.job_start + tp.job_count - 1][1] + 1
-    left = tp.job_total - tp.job_count
-    bgeom = Geom()
-    if left > 0 and _uses_ccd(b, 0):
-      bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
-      if row < 0:
-        row = wp.atomic_add(hfield_count_out, COUNT_EPA_ROWS, 1)
-    ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
-    while left > 0 and code < ncell * NJOB:
-      cell = code // NJOB
-      mask = _cell_jobs(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell)
-      mask = (mask >> (code % NJOB)) << (code % NJOB)  # the cell's jobs from code on
-      job = int(0)
-      while mask != 0:
-        if (mask & 1) == 1:
-          answer, normal = _job_answer(hfield_data, adr, nrow, ncol, size, b, ms, support_mode, tp, cell * NJOB + job,
-                                       mpr_options, bgeom, ccd_in, row, worldid, overflow_out, hfield_count_out)
-          cands = _add_job_answer(hfield_data, adr, nrow, ncol, size, tp, b, cands, cell * NJOB + job, answer,
-                                  normal, spacing, mpr_options.tolerance)
-          left -= 1
-        mask = mask >> 1
-        job += 1
-      code = (cell + 1) * NJOB
-    if tp.cut:
-      wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
-      if opt_warn_hfield:
-        wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
-                  "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
-    if max_contacts > 1:
-      cands.keep = tp.band  # the penetrating ones (depths include the band)
-    write_candidates(
-      cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
-      solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,
-      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
-    )
+  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  def hfield_ccd(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    hfield_size: wp.array(dtype=wp.vec4),
+    hfield_nrow: wp.array(dtype=int),
+    hfield_ncol: wp.array(dtype=int),
+    hfield_adr: wp.array(dtype=int),
+    hfield_data: wp.array(dtype=float),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    # In:
+    pair_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    hfield_pair_in: wp.array(dtype=TerrainPair),
+    hfield_job_in: wp.array(dtype=wp.vec2i),
+    kind_end_in: wp.array(dtype=int),
+    order_in: wp.array(dtype=int),
+    ccd_in: PrismCcd,
+    nthread: int,
+    # Out:
+    overflow_out: wp.array(dtype=int),
+    answer_out: wp.array(dtype=wp.vec4),
+    normal_out: wp.array(dtype=wp.vec3),
+  ):
+    """The queued prisms of boxes and meshes by GJK/EPA (_job_ccd), one thread a job of those two
+    kinds in hfield_order's order, each thread on its own row of EPA memory (nthread rows)."""
+    tid = wp.tid()
+    for t in range(2):
+      kind = wp.where(t == 0, 2 * int(GeomType.BOX), 2 * int(GeomType.MESH))  # their prisms
+      for i in range(kind_end_in[kind - 1] + tid, kind_end_in[kind], nthread):
+        j = order_in[i]
+        job = hfield_job_in[j]
+        tp = hfield_pair_in[job[0]]
+        worldid = pair_worldid_in[tp.cid]
+        geoms = pair_in[tp.cid]
+        hf = geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
+        bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+        hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
+        answer, normal = _job_ccd(hfield, bgeom, geom_type[geoms[1]], tp, job[1], ccd_in, tid, worldid, overflow_out)
+        answer_out[j] = answer
+        normal_out[j] = normal
+
+
+  @wp.kernel(module=module)
+  def hfield_contacts(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_condim: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_priority: wp.array(dtype=int),
+    geom_solmix: wp.array2d(dtype=float),
+    geom_solref: wp.array2d(dtype=wp.vec2),
+    geom_solimp: wp.array2d(dtype=vec5),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_friction: wp.array2d(dtype=wp.vec3),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    geom_adhesion: wp.array2d(dtype=float),
+    geom_aabb: wp.array3d(dtype=wp.vec3),
+    hfield_size: wp.array(dtype=wp.vec4),
+    hfield_nrow: wp.array(dtype=int),
+    hfield_ncol: wp.array(dtype=int),
+    hfield_adr: wp.array(dtype=int),
+    hfield_data: wp.array(dtype=float),
+    pair_dim: wp.array(dtype=int),
+    pair_solref: wp.array2d(dtype=wp.vec2),
+    pair_solreffriction: wp.array2d(dtype=wp.vec2),
+    pair_solimp: wp.array2d(dtype=vec5),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    pair_adhesion: wp.array2d(dtype=float),
+    pair_friction: wp.array2d(dtype=vec5),
+    opt_warn_hfield: int,
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    naconmax_in: int,
+    # In:
+    ms: MeshSupport,
+    mpr_options: MprSettings,
+    max_contacts: int,
+    mc_tolerance: float,
+    pair_in: wp.array(dtype=wp.vec2i),
+    pairid_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    hfield_pair_in: wp.array(dtype=TerrainPair),
+    hfield_job_in: wp.array(dtype=wp.vec2i),
+    answer_in: wp.array(dtype=wp.vec4),
+    normal_in: wp.array(dtype=wp.vec3),
+    ccd_in: PrismCcd,
+    nthread: int,
+    quota: ContactQuota,
+    # Data out:
+    overflow_out: wp.array(dtype=int),
+    # Out:
+    hfield_count_out: wp.array(dtype=int),
+    # Data out:
+    contact_dist_out: wp.array(dtype=float),
+    contact_pos_out: wp.array(dtype=wp.vec3),
+    contact_frame_out: wp.array(dtype=wp.mat33),
+    contact_includemargin_out: wp.array(dtype=float),
+    contact_friction_out: wp.array(dtype=vec5),
+    contact_solref_out: wp.array(dtype=wp.vec2),
+    contact_solreffriction_out: wp.array(dtype=wp.vec2),
+    contact_solimp_out: wp.array(dtype=vec5),
+    contact_dim_out: wp.array(dtype=int),
+    contact_geom_out: wp.array(dtype=wp.vec2i),
+    contact_efc_address_out: wp.array2d(dtype=int),
+    contact_worldid_out: wp.array(dtype=int),
+    contact_type_out: wp.array(dtype=int),
+    contact_geomcollisionid_out: wp.array(dtype=int),
+    contact_adhesion_out: wp.array(dtype=float),
+    nacon_out: wp.array(dtype=int),
+  ):
+    """Last of the heightfield kernels, one thread a pair of hfield_jobs: the face contacts and
+    its MPR answers in job order (running those the queue had no room for), merged
+    (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
+    tid = wp.tid()
+    row = int(-1)  # this thread's row of EPA memory, taken when it first runs GJK/EPA beyond the queue
+    for slot in range(tid, wp.min(hfield_count_out[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
+      tp = hfield_pair_in[slot]
+      cid = tp.cid
+      geoms = pair_in[cid]
+      worldid = pair_worldid_in[cid]
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
+        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
+        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
+        pair_friction, pair_in, pairid_in, cid, worldid,
+      )
+      terrain, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
+      hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
+      spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
+      cands = _plane_pass(hfield, b, ms, tp, spacing)
+      for j in range(tp.job_start, tp.job_start + tp.job_count):
+        cands = _add_job_answer(hfield, tp, b, cands, hfield_job_in[j][1], answer_in[j], normal_in[j], spacing,
+                                mpr_options.tolerance)
+      # the jobs the queue had no room for, in order after the queued ones
+      code = int(0)
+      if tp.job_count > 0:
+        code = hfield_job_in[tp.job_start + tp.job_count - 1][1] + 1
+      left = tp.job_total - tp.job_count
+      bgeom = Geom()
+      if left > 0 and _uses_ccd(b, 0):
+        bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+        if row < 0:
+          row = wp.atomic_add(hfield_count_out, COUNT_EPA_ROWS, 1)
+      ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
+      while left > 0 and code < ncell * NJOB:
+        cell = code // NJOB
+        mask = _cell_jobs(hfield, b, ms, tp, cell)
+        mask = (mask >> (code % NJOB)) << (code % NJOB)  # the cell's jobs from code on
+        job = int(0)
+        while mask != 0:
+          if (mask & 1) == 1:
+            answer, normal = _job_answer(hfield, b, ms, tp, cell * NJOB + job, mpr_options, bgeom, ccd_in, row,
+                                         worldid, overflow_out, hfield_count_out)
+            cands = _add_job_answer(hfield, tp, b, cands, cell * NJOB + job, answer, normal, spacing,
+                                    mpr_options.tolerance)
+            left -= 1
+          mask = mask >> 1
+          job += 1
+        code = (cell + 1) * NJOB
+      if tp.cut:
+        wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
+        if opt_warn_hfield:
+          wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
+                    "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
+      if max_contacts > 1:
+        cands.keep = tp.band  # the penetrating ones (depths include the band)
+      write_candidates(
+        cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
+        solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,
+        contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
+        contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
+        contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+      )
+
+  return SimpleNamespace(jobs=hfield_jobs, kind_start=hfield_kind_start, order=hfield_order, mpr=hfield_mpr,
+                         ccd=hfield_ccd, contacts=hfield_contacts)
 
 
 def check_model(mjm: mujoco.MjModel) -> None:
@@ -572,21 +579,21 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
     return
   opt = c.options
   nthread = max(1, min(pairs.capacity, GRID_THREADS))
-  mode = SUPPORT_MODE_ID[opt.support_mode]
+  kernels = stage_kernels(SUPPORT_MODE_ID[opt.support_mode])
   warn = int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD)))
   hfield = [m.hfield_size, m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data]
   wp.launch(
-    hfield_jobs,
+    kernels.jobs,
     dim=nthread,
     inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_margin, m.geom_gap] + hfield
-    + [m.pair_margin, m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, mode, pairs.npair, pairs.pair,
+    + [m.pair_margin, m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, pairs.npair, pairs.pair,
        pairs.pairid, pairs.pair_worldid, 2, nthread],
     outputs=[d.overflow, b.count, b.pair, b.job],
   )
   nthread_pair = max(1, min(b.pair.shape[0], GRID_THREADS))
-  wp.launch(hfield_kind_start, dim=1, inputs=[b.count], outputs=[b.kind_next])
+  wp.launch(kernels.kind_start, dim=1, inputs=[b.count], outputs=[b.kind_next])
   wp.launch(
-    hfield_order,
+    kernels.order,
     dim=nthread_pair,
     inputs=[m.geom_type, pairs.pair, b.count, b.pair, b.job, nthread_pair],
     outputs=[b.kind_next, b.order],
@@ -594,16 +601,16 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
   ccd_in = prism_ccd(c, m, b)
   nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
   wp.launch(
-    hfield_mpr,
+    kernels.mpr,
     dim=nthread_mpr,
     inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
-    + [d.geom_xpos, d.geom_xmat, c.mesh_support, mode, settings_of(opt), pairs.pair, pairs.pair_worldid, b.count,
+    + [d.geom_xpos, d.geom_xmat, c.mesh_support, settings_of(opt), pairs.pair, pairs.pair_worldid, b.count,
        b.pair, b.job, b.order, nthread_mpr],
     outputs=[b.answer, b.normal],
   )
   if c.hfield_ccd:
     wp.launch(
-      hfield_ccd,
+      kernels.ccd,
       dim=b.ccd_rows,
       inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
       + [d.geom_xpos, d.geom_xmat, pairs.pair, pairs.pair_worldid, b.pair, b.job, b.kind_next, b.order, ccd_in,
@@ -611,16 +618,15 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
       outputs=[d.overflow, b.answer, b.normal],
     )
   wp.launch(
-    hfield_contacts,
+    kernels.contacts,
     dim=nthread_pair,
     inputs=[
       m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
       m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
       m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-      m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, mode,
-      settings_of(opt), opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid,
-      pairs.pair_worldid, b.pair, b.job, b.answer, b.normal, ccd_in,
-      nthread_pair, quota,
+      m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, settings_of(opt),
+      opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.pair, b.job,
+      b.answer, b.normal, ccd_in, nthread_pair, quota,
     ],
     outputs=[d.overflow, b.count] + contact_outputs(d),
   )

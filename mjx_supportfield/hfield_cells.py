@@ -6,6 +6,8 @@ MPR answer (a point over a triangle, outside a prism's side walls). This module 
 device functions for the heightfield stage (heightfield.py); it launches nothing.
 """
 
+import functools
+
 import warp as wp
 from mujoco_warp._src.collision_core import Geom
 from mujoco_warp._src.types import GeomType
@@ -16,9 +18,35 @@ from mjx_supportfield.candidates import row
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.support import box_corner
 from mjx_supportfield.support import hull_point
-from mjx_supportfield.support import support_world
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+
+
+@wp.struct
+class Heightfield:
+  """One heightfield as the device functions read it, one argument instead of five: MuJoCo's
+  elevations (all heightfields) and where this one's start, its grid and its size."""
+
+  data: wp.array(dtype=float)  # MuJoCo's hfield_data: elevations scaled to [0, 1], all heightfields
+  adr: int  # this heightfield's first sample in data
+  nrow: int  # rows of samples (along y)
+  ncol: int  # columns of samples (along x)
+  size: wp.vec4  # x and y radii, elevation scale, base depth
+
+
+@wp.func
+def heightfield(hfield_size: wp.array(dtype=wp.vec4), hfield_nrow: wp.array(dtype=int),
+                hfield_ncol: wp.array(dtype=int), hfield_adr: wp.array(dtype=int), hfield_data: wp.array(dtype=float),
+                hf: int) -> Heightfield:
+  """Heightfield ``hf`` of the model's arrays."""
+  out = Heightfield()
+  out.data = hfield_data
+  out.adr = hfield_adr[hf]
+  out.nrow = hfield_nrow[hf]
+  out.ncol = hfield_ncol[hf]
+  out.size = hfield_size[hf]
+  return out
 
 
 @wp.func
@@ -102,24 +130,31 @@ def _prism_geom(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, bottom: float) -> Geom:
   return g
 
 
-@wp.func
-def _outside_walls(b: Shape, ms: MeshSupport, mode: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, band: float,
-                   nwall: int) -> bool:
-  """Whether B (grown by band) lies wholly outside one of the prism's nwall = 3 vertical side
-  walls (through the triangle's edges): then the prism's MPR can find nothing. nwall comes in
-  as an argument so the loop is not unrolled (one support call site)."""
-  for i in range(nwall):
-    e0 = wp.where(i == 0, v0, wp.where(i == 1, v1, v2))
-    e1 = wp.where(i == 0, v1, wp.where(i == 1, v2, v0))
-    other = wp.where(i == 0, v2, wp.where(i == 1, v0, v1))
-    out = wp.vec3(e1[1] - e0[1], e0[0] - e1[0], 0.0)
-    out = wp.where(wp.dot(out, other - e0) > 0.0, -out, out)
-    length = wp.length(out)
-    if length > 0.0:
-      out = out / length
-      if wp.dot(support_world(b, ms, -out, mode) - e0, out) > band:
-        return True
-  return False
+@functools.lru_cache(maxsize=None)
+def outside_walls_func(mode: int) -> wp.Function:
+  """``_outside_walls`` on the support functions of support mode ``mode`` (support_funcs)."""
+  support_world = support_funcs(mode).support_world
+
+  @wp.func
+  def _outside_walls(b: Shape, ms: MeshSupport, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, band: float, nwall: int
+                     ) -> bool:
+    """Whether B (grown by band) lies wholly outside one of the prism's nwall = 3 vertical side
+    walls (through the triangle's edges): then the prism's MPR can find nothing. nwall comes in
+    as an argument so the loop is not unrolled (one support call site)."""
+    for i in range(nwall):
+      e0 = wp.where(i == 0, v0, wp.where(i == 1, v1, v2))
+      e1 = wp.where(i == 0, v1, wp.where(i == 1, v2, v0))
+      other = wp.where(i == 0, v2, wp.where(i == 1, v0, v1))
+      out = wp.vec3(e1[1] - e0[1], e0[0] - e1[0], 0.0)
+      out = wp.where(wp.dot(out, other - e0) > 0.0, -out, out)
+      length = wp.length(out)
+      if length > 0.0:
+        out = out / length
+        if wp.dot(support_world(b, ms, -out) - e0, out) > band:
+          return True
+    return False
+
+  return _outside_walls
 
 
 @wp.func
@@ -168,9 +203,14 @@ def _closest_on_segment(p0: wp.vec3, p1: wp.vec3, x: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def _vertex(hfield_data: wp.array(dtype=float), adr: int, ncol: int, size: wp.vec4, dx: float, dy: float,
-            r: int, c: int) -> wp.vec3:
-  return wp.vec3(dx * float(c) - size[0], dy * float(r) - size[1], hfield_data[adr + r * ncol + c] * size[2])
+def _sample(hfield: Heightfield, r: int, c: int) -> float:
+  """The heightfield's elevation sample at grid row r, column c (in [0, 1])."""
+  return hfield.data[hfield.adr + r * hfield.ncol + c]
+
+
+@wp.func
+def _vertex(hfield: Heightfield, dx: float, dy: float, r: int, c: int) -> wp.vec3:
+  return wp.vec3(dx * float(c) - hfield.size[0], dy * float(r) - hfield.size[1], _sample(hfield, r, c) * hfield.size[2])
 
 
 @wp.func
@@ -192,22 +232,20 @@ def _valley(e0: wp.vec3, e1: wp.vec3, o1: wp.vec3, o2: wp.vec3, eps: float) -> b
 
 
 @wp.func
-def _peak(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float, dy: float,
-          r: int, c: int, eps: float) -> bool:
+def _peak(hfield: Heightfield, dx: float, dy: float, r: int, c: int, eps: float) -> bool:
   """Whether grid vertex (r, c) stands above the mean of its (up to 4) grid neighbours; a
   vertex on the terrain's border always counts."""
-  if r == 0 or c == 0 or r == nrow - 1 or c == ncol - 1:
+  if r == 0 or c == 0 or r == hfield.nrow - 1 or c == hfield.ncol - 1:
     return True
-  h = hfield_data[adr + r * ncol + c]
-  around = 0.25 * (hfield_data[adr + (r - 1) * ncol + c] + hfield_data[adr + (r + 1) * ncol + c]
-                   + hfield_data[adr + r * ncol + c - 1] + hfield_data[adr + r * ncol + c + 1])
-  return (h - around) * size[2] > eps
+  h = _sample(hfield, r, c)
+  around = 0.25 * (_sample(hfield, r - 1, c) + _sample(hfield, r + 1, c) + _sample(hfield, r, c - 1)
+                   + _sample(hfield, r, c + 1))
+  return (h - around) * hfield.size[2] > eps
 
 
 @wp.func
-def _feature(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
-             dy: float, r: int, c: int, k: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3,
-             eps: float) -> tuple[wp.vec3, wp.vec3, wp.vec3, wp.vec3, bool]:
+def _feature(hfield: Heightfield, dx: float, dy: float, r: int, c: int, k: int, p00: wp.vec3, p01: wp.vec3,
+             p10: wp.vec3, p11: wp.vec3, eps: float) -> tuple[wp.vec3, wp.vec3, wp.vec3, wp.vec3, bool]:
   """Feature k of cell (r, c) as a segment e0-e1 (a point when e0 = e1), an edge's two
   triangles' third vertices o1, o2, and whether it is convex (a peak or a ridge): 0 the vertex
   p00; 1, 2 the edges p00-p01 and p00-p10; 3 the diagonal p00-p11; 4, 5 the far edges p01-p11
@@ -220,16 +258,16 @@ def _feature(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
   border = bool(False)
   convex = bool(False)
   if k == 0:
-    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, eps)
+    convex = _peak(hfield, dx, dy, r, c, eps)
   elif k == 1:
     e1 = p01
     o1 = p11
-    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.max(r - 1, 0), c)
+    o2 = _vertex(hfield, dx, dy, wp.max(r - 1, 0), c)
     border = r == 0
   elif k == 2:
     e1 = p10
     o1 = p11
-    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, wp.max(c - 1, 0))
+    o2 = _vertex(hfield, dx, dy, r, wp.max(c - 1, 0))
     border = c == 0
   elif k == 3:
     e1 = p11
@@ -239,35 +277,34 @@ def _feature(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
     e0 = p01
     e1 = p11
     o1 = p00
-    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, wp.min(c + 2, ncol - 1))
-    border = c + 2 > ncol - 1
+    o2 = _vertex(hfield, dx, dy, r + 1, wp.min(c + 2, hfield.ncol - 1))
+    border = c + 2 > hfield.ncol - 1
   elif k == 5:
     e0 = p10
     e1 = p11
     o1 = p00
-    o2 = _vertex(hfield_data, adr, ncol, size, dx, dy, wp.min(r + 2, nrow - 1), c + 1)
-    border = r + 2 > nrow - 1
+    o2 = _vertex(hfield, dx, dy, wp.min(r + 2, hfield.nrow - 1), c + 1)
+    border = r + 2 > hfield.nrow - 1
   elif k == 6:
     e0 = p01
     e1 = p01
-    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r, c + 1, eps)
+    convex = _peak(hfield, dx, dy, r, c + 1, eps)
   elif k == 7:
     e0 = p10
     e1 = p10
-    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c, eps)
+    convex = _peak(hfield, dx, dy, r + 1, c, eps)
   else:
     e0 = p11
     e1 = p11
-    convex = _peak(hfield_data, adr, nrow, ncol, size, dx, dy, r + 1, c + 1, eps)
+    convex = _peak(hfield, dx, dy, r + 1, c + 1, eps)
   if k >= 1 and k <= 5:
     convex = border or _ridge(e0, e1, o1, o2, eps)
   return e0, e1, o1, o2, convex
 
 
 @wp.func
-def _fold_answer_kept(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
-                      dy: float, r: int, c: int, job: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3,
-                      normal: wp.vec3, eps: float) -> bool:
+def _fold_answer_kept(hfield: Heightfield, dx: float, dy: float, r: int, c: int, job: int, p00: wp.vec3,
+                      p01: wp.vec3, p10: wp.vec3, p11: wp.vec3, normal: wp.vec3, eps: float) -> bool:
   """Whether point-pass job ``job``'s answer (B's surface normal ``normal``) is kept: always,
   but for a concave edge's point, only where B leans away from one of the edge's two triangles,
   which then touches B at that edge alone; where both triangles' faces hold contacts of B, the
@@ -275,7 +312,7 @@ def _fold_answer_kept(hfield_data: wp.array(dtype=float), adr: int, nrow: int, n
   k = (job - 2) // 3
   if (job - 2) % 3 != 0 or k < 1 or k > 5:
     return True
-  e0, e1, o1, o2, convex = _feature(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, k, p00, p01, p10, p11, eps)
+  e0, e1, o1, o2, convex = _feature(hfield, dx, dy, r, c, k, p00, p01, p10, p11, eps)
   if convex:
     return True
   axis = wp.normalize(e1 - e0)
@@ -285,14 +322,14 @@ def _fold_answer_kept(hfield_data: wp.array(dtype=float), adr: int, nrow: int, n
 
 
 @wp.func
-def _cell(hfield_data: wp.array(dtype=float), adr: int, ncol: int, size: wp.vec4, dx: float, dy: float, r: int,
+def _cell(hfield: Heightfield, dx: float, dy: float, r: int,
           c: int) -> tuple[wp.vec3, wp.vec3, wp.vec3, wp.vec3, wp.vec3, wp.vec3]:
   """Cell (r, c)'s corners p00, p01, p10, p11 and the upward normals of its triangles
   (p00, p10, p11) and (p00, p11, p01)."""
-  p00 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c)
-  p01 = _vertex(hfield_data, adr, ncol, size, dx, dy, r, c + 1)
-  p10 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c)
-  p11 = _vertex(hfield_data, adr, ncol, size, dx, dy, r + 1, c + 1)
+  p00 = _vertex(hfield, dx, dy, r, c)
+  p01 = _vertex(hfield, dx, dy, r, c + 1)
+  p10 = _vertex(hfield, dx, dy, r + 1, c)
+  p11 = _vertex(hfield, dx, dy, r + 1, c + 1)
   na = wp.normalize(wp.cross(p10 - p00, p11 - p00))
   na = wp.where(na[2] < 0.0, -na, na)
   nb = wp.normalize(wp.cross(p11 - p00, p01 - p00))
@@ -301,9 +338,9 @@ def _cell(hfield_data: wp.array(dtype=float), adr: int, ncol: int, size: wp.vec4
 
 
 @wp.func
-def _feature_point(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, dx: float,
-                   dy: float, r: int, c: int, r1: int, c1: int, job: int, p00: wp.vec3, p01: wp.vec3, p10: wp.vec3,
-                   p11: wp.vec3, center: wp.vec3, eps: float, valleys: bool) -> tuple[wp.vec3, bool]:
+def _feature_point(hfield: Heightfield, dx: float, dy: float, r: int, c: int, r1: int, c1: int, job: int,
+                   p00: wp.vec3, p01: wp.vec3, p10: wp.vec3, p11: wp.vec3, center: wp.vec3, eps: float,
+                   valleys: bool) -> tuple[wp.vec3, bool]:
   """The terrain point of point-pass job (2 ...) of cell (r, c), and whether it is one: job
   2 + 3 k + end is feature k's point nearest B's centre (end 0) or a ridge's ends (1, 2).
   Only convex features (ridges, peaks) can poke into a geom (elsewhere the surface points
@@ -317,7 +354,7 @@ def _feature_point(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol
   if (end > 0 and (k < 1 or k > 5)) or ((k == 4 or k == 6 or k == 8) and c < c1) or (
       (k == 5 or k == 7 or k == 8) and r < r1):
     return p00, False
-  e0, e1, o1, o2, convex = _feature(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, k, p00, p01, p10, p11, eps)
+  e0, e1, o1, o2, convex = _feature(hfield, dx, dy, r, c, k, p00, p01, p10, p11, eps)
   q = _closest_on_segment(e0, e1, center)
   if end == 1:
     q = e0
@@ -332,6 +369,6 @@ def _axis(k: int) -> wp.vec3:
 
 
 @wp.func
-def _cell_size(size: wp.vec4, nrow: int, ncol: int) -> tuple[float, float]:
+def _cell_size(hfield: Heightfield) -> tuple[float, float]:
   """A grid cell's width dx (along x, the columns) and depth dy (along y, the rows)."""
-  return 2.0 * size[0] / float(ncol - 1), 2.0 * size[1] / float(nrow - 1)
+  return 2.0 * hfield.size[0] / float(hfield.ncol - 1), 2.0 * hfield.size[1] / float(hfield.nrow - 1)

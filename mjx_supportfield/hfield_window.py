@@ -8,6 +8,8 @@ pass (``_plane_pass``) gives the geom's points under each triangle's plane. heig
 kernels call these and own the launches and buffers; hfield_cells.py has the cells' geometry.
 """
 
+import functools
+from types import SimpleNamespace
 
 import warp as wp
 from mujoco_warp._src.collision_core import Geom
@@ -21,24 +23,25 @@ from mjx_supportfield.candidates import add_candidate
 from mjx_supportfield.candidates import empty_with_room
 from mjx_supportfield.hfield_cells import _axis
 from mjx_supportfield.hfield_cells import _capsule_end
+from mjx_supportfield.hfield_cells import Heightfield
 from mjx_supportfield.hfield_cells import _cell
 from mjx_supportfield.hfield_cells import _cell_size
 from mjx_supportfield.hfield_cells import _corner
 from mjx_supportfield.hfield_cells import _corners
 from mjx_supportfield.hfield_cells import _feature_point
 from mjx_supportfield.hfield_cells import _fold_answer_kept
-from mjx_supportfield.hfield_cells import _outside_walls
 from mjx_supportfield.hfield_cells import _plane_depth
 from mjx_supportfield.hfield_cells import _point_shape
 from mjx_supportfield.hfield_cells import _prism_answer_kept
 from mjx_supportfield.hfield_cells import _prism_geom
 from mjx_supportfield.hfield_cells import _prism_shape
+from mjx_supportfield.hfield_cells import outside_walls_func
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import MprSettings
-from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.mpr import mpr_funcs
 from mjx_supportfield.routing import NGEOMTYPE
 from mjx_supportfield.shapes import posed_shape
-from mjx_supportfield.support import support_world
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -137,40 +140,6 @@ def _terrain_pair(
 
 
 @wp.func
-def _window(b: Shape, ms: MeshSupport, mode: int, band: float, nrow: int, ncol: int, size: wp.vec4) -> TerrainPair:
-  """The cells under B (its bounds grown by band), at most MAX_CELLS around its centre; an
-  empty window (r0 > r1) when B is off the terrain or above or below it."""
-  tp = TerrainPair()
-  tp.band = band
-  tp.cut = 0
-  tp.job_total = 0
-  tp.job_start = 0
-  tp.job_count = 0
-  tp.nprism = 0
-  for k in range(3):
-    tp.hi[k] = support_world(b, ms, _axis(k), mode)[k] + band
-    tp.lo[k] = support_world(b, ms, -_axis(k), mode)[k] - band
-  dx, dy = _cell_size(size, nrow, ncol)
-  c0 = wp.max(0, int(wp.floor((tp.lo[0] + size[0]) / dx)))
-  c1 = wp.min(ncol - 2, int(wp.floor((tp.hi[0] + size[0]) / dx)))
-  r0 = wp.max(0, int(wp.floor((tp.lo[1] + size[1]) / dy)))
-  r1 = wp.min(nrow - 2, int(wp.floor((tp.hi[1] + size[1]) / dy)))
-  if tp.lo[2] > size[2] or tp.hi[2] < -size[3]:
-    r1 = r0 - 1
-  if c0 <= c1 and r0 <= r1 and (c1 - c0 + 1) * (r1 - r0 + 1) > MAX_CELLS:
-    tp.cut = 1
-    half = wp.static(int(MAX_CELLS**0.5) // 2)
-    cc = int(wp.floor((b.center[0] + size[0]) / dx))
-    rc = int(wp.floor((b.center[1] + size[1]) / dy))
-    c0 = wp.max(c0, cc - half)
-    c1 = wp.min(c1, cc + half - 1)
-    r0 = wp.max(r0, rc - half)
-    r1 = wp.min(r1, rc + half - 1)
-  tp.window = wp.vec4i(r0, r1, c0, c1)
-  return tp
-
-
-@wp.func
 def _window_cell(tp: TerrainPair, cell: int) -> tuple[int, int]:
   """Grid row and column of the window's cell number ``cell`` (numbered along its rows)."""
   ncols = tp.window[3] - tp.window[2] + 1
@@ -199,79 +168,18 @@ def _round(b: Shape) -> bool:
 
 
 @wp.func
-def _cell_jobs(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-               ms: MeshSupport, mode: int, tp: TerrainPair, cell: int) -> int:
-  """The MPR jobs of a window cell that pass the cheap tests, as a bit mask over its NJOB jobs:
-  0, 1 the prisms of its two triangles, 2 + 3 k + end feature k's points (_feature_point)."""
-  dx, dy = _cell_size(size, nrow, ncol)
-  eps = 1.0e-6 * (dx + dy + size[2])
-  band = tp.band
-  r, c = _window_cell(tp, cell)
-  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-  if _above_cell(tp, p00, p01, p10, p11):
-    return 0
-  # B's deepest point under each triangle's plane: where B stays above a plane (by more than the
-  # band), that triangle, its prism and the terrain features on it touch nothing
-  below_a = wp.dot(na, p00 - support_world(b, ms, -na, mode)) + band > 0.0
-  below_b = wp.dot(nb, p00 - support_world(b, ms, -nb, mode)) + band > 0.0
-  mask = int(0)
-  job = int(0)
-  while job < NJOB and (below_a or below_b):
-    wanted = bool(False)
-    if (job == 0 and below_a) or (job == 1 and below_b):
-      wanted = not _outside_walls(b, ms, mode, p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), band,
-                                  3)
-    elif job >= 2:
-      k = (job - 2) // 3
-      on_a = k == 0 or k == 2 or k == 3 or k == 5 or k == 7 or k == 8  # see _feature
-      on_b = k == 0 or k == 1 or k == 3 or k == 4 or k == 6 or k == 8
-      if (below_a or not on_a) and (below_b or not on_b):
-        q, wanted = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job,
-                                   p00, p01, p10, p11, b.center, eps, _round(b))
-        lo = tp.lo
-        hi = tp.hi
-        if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
-          wanted = False
-        # most such points lie outside B: B's support toward the point, from its centre, shows
-        # that with one query instead of an MPR
-        out = q - b.center
-        if wanted and wp.length(out) > 0.0:
-          out = wp.normalize(out)
-          wanted = wp.dot(q - support_world(b, ms, out, mode), out) <= band
-    if wanted:
-      mask = mask | (1 << job)
-    job += 1
-  return mask
-
-
-@wp.func
-def _job_shape(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-               tp: TerrainPair, code: int) -> Shape:
+def _job_shape(hfield: Heightfield, b: Shape, tp: TerrainPair, code: int) -> Shape:
   """The terrain part of MPR job ``code`` (cell * NJOB + job): a triangle's prism or a point."""
-  dx, dy = _cell_size(size, nrow, ncol)
-  eps = 1.0e-6 * (dx + dy + size[2])
+  dx, dy = _cell_size(hfield)
+  eps = 1.0e-6 * (dx + dy + hfield.size[2])
   job = code % NJOB
   r, c = _window_cell(tp, code // NJOB)
-  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+  p00, p01, p10, p11, na, nb = _cell(hfield, dx, dy, r, c)
   if job >= 2:
-    q, convex = _feature_point(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, tp.window[1], tp.window[3], job, p00, p01,
+    q, convex = _feature_point(hfield, dx, dy, r, c, tp.window[1], tp.window[3], job, p00, p01,
                           p10, p11, b.center, eps, False)
     return _point_shape(q, tp.band)
-  return _prism_shape(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -size[3], tp.band)
-
-
-@wp.func
-def _job_mpr(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-             ms: MeshSupport, mode: int, tp: TerrainPair, code: int, mpr_options: MprSettings
-             ) -> tuple[wp.vec4, wp.vec3]:
-  """MPR job ``code``'s answer: the contact point and depth (0 when it found none), and the normal."""
-  a = _job_shape(hfield_data, adr, nrow, ncol, size, b, tp, code)
-  dx, dy = _cell_size(size, nrow, ncol)
-  scale = _scale(tp, dx, dy)
-  res = mpr_refined(a, b, ms, mode, scale, mpr_options.tolerance, mpr_options.iterations, mpr_options.refine,
-                    RESTART_BEHIND)
-  depth = wp.where(res.hit != 0 and res.depth > 0.0, res.depth, 0.0)
-  return wp.vec4(res.pos[0], res.pos[1], res.pos[2], depth), res.normal
+  return _prism_shape(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -hfield.size[3], tp.band)
 
 
 @wp.func
@@ -302,18 +210,17 @@ def _ccd_geom(ccd_in: PrismCcd, geom_type: wp.array(dtype=int), geom_dataid: wp.
 
 
 @wp.func
-def _job_ccd(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, bgeom: Geom,
-             btype: int, tp: TerrainPair, code: int, ccd_in: PrismCcd, row: int, worldid: int,
-             overflow_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
+def _job_ccd(hfield: Heightfield, bgeom: Geom, btype: int, tp: TerrainPair, code: int, ccd_in: PrismCcd, row: int,
+             worldid: int, overflow_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
   """Prism job ``code``'s answer by MuJoCo Warp's GJK/EPA on EPA memory ``row``, the prism built
   as collision_convex's heightfield kernel builds it (MuJoCo's vertex order, GJK started from its
   centre): the midpoint of the witness points and the depth with the band (0 when apart), and the
   normal from the terrain to B."""
-  dx, dy = _cell_size(size, nrow, ncol)
+  dx, dy = _cell_size(hfield)
   r, c = _window_cell(tp, code // NJOB)
-  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+  p00, p01, p10, p11, na, nb = _cell(hfield, dx, dy, r, c)
   first = code % NJOB == 0  # MuJoCo's first triangle (p10, p00, p11), then (p00, p11, p01)
-  prism = _prism_geom(wp.where(first, p10, p00), wp.where(first, p00, p11), wp.where(first, p11, p01), -size[3])
+  prism = _prism_geom(wp.where(first, p10, p00), wp.where(first, p00, p11), wp.where(first, p11, p01), -hfield.size[3])
   centre = wp.vec3(0.0)
   for i in range(6):
     centre += prism.polyvert[i]
@@ -330,78 +237,18 @@ def _job_ccd(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int,
 
 
 @wp.func
-def _job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-                ms: MeshSupport, mode: int, tp: TerrainPair, code: int, mpr_options: MprSettings, bgeom: Geom,
-                ccd_in: PrismCcd, row: int, worldid: int, overflow_out: wp.array(dtype=int),
-                count_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
-  """MPR job ``code``'s answer (_job_mpr), or GJK/EPA's for a prism against a box or a mesh on EPA
-  memory ``row`` (MPR's when no row was left: counted in COUNT_CCD_AS_MPR)."""
-  if _uses_ccd(b, code):
-    if row >= 0 and row < ccd_in.vert.shape[0]:
-      return _job_ccd(hfield_data, adr, nrow, ncol, size, bgeom, b.gtype, tp, code, ccd_in, row, worldid,
-                      overflow_out)
-    wp.atomic_add(count_out, COUNT_CCD_AS_MPR, 1)
-  return _job_mpr(hfield_data, adr, nrow, ncol, size, b, ms, mode, tp, code, mpr_options)
-
-
-@wp.func
-def _plane_pass(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4, b: Shape,
-                ms: MeshSupport, mode: int, tp: TerrainPair, spacing: float) -> Candidates:
-  """The face contacts: B's corners against the triangle under each, then each cell's
-  triangles against B's deepest points (and a capsule's ends)."""
-  cands = empty_with_room(NCANDIDATE)  # a face on rough terrain rests on many prisms (_uses_ccd)
-  band = tp.band
-  r0 = tp.window[0]
-  r1 = tp.window[1]
-  c0 = tp.window[2]
-  c1 = tp.window[3]
-  dx, dy = _cell_size(size, nrow, ncol)
-  ncell = (r1 - r0 + 1) * (c1 - c0 + 1)
-  ncorner = _corners(b, ms)
-  nlow = wp.where(b.gtype == GeomType.CAPSULE, 3, 1)  # plane jobs a triangle: B's deepest point, a capsule's ends
-  for item in range(ncorner + ncell):
-    corner = wp.vec3(0.0)
-    r, c = _window_cell(tp, item - ncorner)
-    if item < ncorner:
-      corner = _corner(b, ms, item)
-      c = int(wp.floor((corner[0] + size[0]) / dx))
-      r = int(wp.floor((corner[1] + size[1]) / dy))
-      if c < c0 or c > c1 or r < r0 or r > r1:
-        continue
-    p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
-    if _above_cell(tp, p00, p01, p10, p11):
-      continue
-    njob = wp.where(item < ncorner, 1, 2 * nlow)
-    for job in range(njob):
-      t = job // nlow  # the triangle: (p00, p10, p11) or (p00, p11, p01)
-      p = corner
-      if item < ncorner:
-        t = wp.where((corner[1] - p00[1]) / dy >= (corner[0] - p00[0]) / dx, 0, 1)  # above the diagonal: the first
-      n = wp.where(t == 0, na, nb)
-      if item >= ncorner and job % nlow == 0:
-        p = support_world(b, ms, -n, mode)
-      elif item >= ncorner:
-        p = _capsule_end(b, job % nlow - 1, n)
-      depth = _plane_depth(p, p00, wp.where(t == 0, p10, p11), wp.where(t == 0, p11, p01), n, band)
-      if depth > 0.0:
-        cands = add_candidate(cands, p + 0.5 * depth * n, n, depth, spacing)
-  return cands
-
-
-@wp.func
-def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, ncol: int, size: wp.vec4,
-                    tp: TerrainPair, b: Shape, cands: Candidates, code: int, answer: wp.vec4, normal: wp.vec3,
-                    spacing: float, tol: float) -> Candidates:
+def _add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: Candidates, code: int, answer: wp.vec4,
+                    normal: wp.vec3, spacing: float, tol: float) -> Candidates:
   """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to the
   candidates, unless it is a prism's answer through a side wall or one the face contacts
   already hold (_prism_answer_kept), or a point's with a normal into the terrain or between
   two faces that hold B's contacts (_fold_answer_kept)."""
   if answer[3] <= 0.0:
     return cands
-  dx, dy = _cell_size(size, nrow, ncol)
+  dx, dy = _cell_size(hfield)
   job = code % NJOB
   r, c = _window_cell(tp, code // NJOB)
-  p00, p01, p10, p11, na, nb = _cell(hfield_data, adr, ncol, size, dx, dy, r, c)
+  p00, p01, p10, p11, na, nb = _cell(hfield, dx, dy, r, c)
   res = MprResult()
   res.hit = 1
   res.depth = answer[3]
@@ -412,8 +259,8 @@ def _add_job_answer(hfield_data: wp.array(dtype=float), adr: int, nrow: int, nco
       return cands
   elif wp.dot(normal, na + nb) <= 0.0:
     return cands  # B's surface normal must point away from the terrain
-  elif not _fold_answer_kept(hfield_data, adr, nrow, ncol, size, dx, dy, r, c, job, p00, p01, p10, p11, normal,
-                             1.0e-6 * (dx + dy + size[2])):
+  elif not _fold_answer_kept(hfield, dx, dy, r, c, job, p00, p01, p10, p11, normal,
+                             1.0e-6 * (dx + dy + hfield.size[2])):
     return cands
   return add_candidate(cands, res.pos, normal, res.depth, spacing)
 
@@ -442,3 +289,160 @@ def _queue_cell(job_out: wp.array(dtype=wp.vec2i), slot: int, tp: TerrainPair, c
       out += 1
     job += 1
   return out
+
+
+@functools.lru_cache(maxsize=None)
+def window_funcs(mode: int) -> SimpleNamespace:
+  """The window's and the jobs' device functions on the support functions of support mode
+  ``mode`` (support_funcs, mpr_funcs): ``_window``, ``_cell_jobs``, ``_job_mpr``, ``_job_answer``
+  and ``_plane_pass``."""
+  support_world = support_funcs(mode).support_world
+  mpr_refined = mpr_funcs(mode).mpr_refined
+  _outside_walls = outside_walls_func(mode)
+
+  @wp.func
+  def _window(b: Shape, ms: MeshSupport, band: float, hfield: Heightfield) -> TerrainPair:
+    """The cells under B (its bounds grown by band), at most MAX_CELLS around its centre; an
+    empty window (r0 > r1) when B is off the terrain or above or below it."""
+    tp = TerrainPair()
+    tp.band = band
+    tp.cut = 0
+    tp.job_total = 0
+    tp.job_start = 0
+    tp.job_count = 0
+    tp.nprism = 0
+    for k in range(3):
+      tp.hi[k] = support_world(b, ms, _axis(k))[k] + band
+      tp.lo[k] = support_world(b, ms, -_axis(k))[k] - band
+    dx, dy = _cell_size(hfield)
+    c0 = wp.max(0, int(wp.floor((tp.lo[0] + hfield.size[0]) / dx)))
+    c1 = wp.min(hfield.ncol - 2, int(wp.floor((tp.hi[0] + hfield.size[0]) / dx)))
+    r0 = wp.max(0, int(wp.floor((tp.lo[1] + hfield.size[1]) / dy)))
+    r1 = wp.min(hfield.nrow - 2, int(wp.floor((tp.hi[1] + hfield.size[1]) / dy)))
+    if tp.lo[2] > hfield.size[2] or tp.hi[2] < -hfield.size[3]:
+      r1 = r0 - 1
+    if c0 <= c1 and r0 <= r1 and (c1 - c0 + 1) * (r1 - r0 + 1) > MAX_CELLS:
+      tp.cut = 1
+      half = wp.static(int(MAX_CELLS**0.5) // 2)
+      cc = int(wp.floor((b.center[0] + hfield.size[0]) / dx))
+      rc = int(wp.floor((b.center[1] + hfield.size[1]) / dy))
+      c0 = wp.max(c0, cc - half)
+      c1 = wp.min(c1, cc + half - 1)
+      r0 = wp.max(r0, rc - half)
+      r1 = wp.min(r1, rc + half - 1)
+    tp.window = wp.vec4i(r0, r1, c0, c1)
+    return tp
+
+  @wp.func
+  def _cell_jobs(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, cell: int) -> int:
+    """The MPR jobs of a window cell that pass the cheap tests, as a bit mask over its NJOB jobs:
+    0, 1 the prisms of its two triangles, 2 + 3 k + end feature k's points (_feature_point)."""
+    dx, dy = _cell_size(hfield)
+    eps = 1.0e-6 * (dx + dy + hfield.size[2])
+    band = tp.band
+    r, c = _window_cell(tp, cell)
+    p00, p01, p10, p11, na, nb = _cell(hfield, dx, dy, r, c)
+    if _above_cell(tp, p00, p01, p10, p11):
+      return 0
+    # B's deepest point under each triangle's plane: where B stays above a plane (by more than the
+    # band), that triangle, its prism and the terrain features on it touch nothing
+    below_a = wp.dot(na, p00 - support_world(b, ms, -na)) + band > 0.0
+    below_b = wp.dot(nb, p00 - support_world(b, ms, -nb)) + band > 0.0
+    mask = int(0)
+    job = int(0)
+    while job < NJOB and (below_a or below_b):
+      wanted = bool(False)
+      if (job == 0 and below_a) or (job == 1 and below_b):
+        wanted = not _outside_walls(b, ms, p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), band,
+                                    3)
+      elif job >= 2:
+        k = (job - 2) // 3
+        on_a = k == 0 or k == 2 or k == 3 or k == 5 or k == 7 or k == 8  # see _feature
+        on_b = k == 0 or k == 1 or k == 3 or k == 4 or k == 6 or k == 8
+        if (below_a or not on_a) and (below_b or not on_b):
+          q, wanted = _feature_point(hfield, dx, dy, r, c, tp.window[1], tp.window[3], job,
+                                     p00, p01, p10, p11, b.center, eps, _round(b))
+          lo = tp.lo
+          hi = tp.hi
+          if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
+            wanted = False
+          # most such points lie outside B: B's support toward the point, from its centre, shows
+          # that with one query instead of an MPR
+          out = q - b.center
+          if wanted and wp.length(out) > 0.0:
+            out = wp.normalize(out)
+            wanted = wp.dot(q - support_world(b, ms, out), out) <= band
+      if wanted:
+        mask = mask | (1 << job)
+      job += 1
+    return mask
+
+  @wp.func
+  def _job_mpr(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, code: int,
+               mpr_options: MprSettings) -> tuple[wp.vec4, wp.vec3]:
+    """MPR job ``code``'s answer: the contact point and depth (0 when it found none), and the normal."""
+    a = _job_shape(hfield, b, tp, code)
+    dx, dy = _cell_size(hfield)
+    scale = _scale(tp, dx, dy)
+    res = mpr_refined(a, b, ms, scale, mpr_options.tolerance, mpr_options.iterations, mpr_options.refine,
+                      RESTART_BEHIND)
+    depth = wp.where(res.hit != 0 and res.depth > 0.0, res.depth, 0.0)
+    return wp.vec4(res.pos[0], res.pos[1], res.pos[2], depth), res.normal
+
+  @wp.func
+  def _job_answer(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, code: int,
+                  mpr_options: MprSettings, bgeom: Geom, ccd_in: PrismCcd, row: int, worldid: int,
+                  overflow_out: wp.array(dtype=int), count_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
+    """MPR job ``code``'s answer (_job_mpr), or GJK/EPA's for a prism against a box or a mesh on EPA
+    memory ``row`` (MPR's when no row was left: counted in COUNT_CCD_AS_MPR)."""
+    if _uses_ccd(b, code):
+      if row >= 0 and row < ccd_in.vert.shape[0]:
+        return _job_ccd(hfield, bgeom, b.gtype, tp, code, ccd_in, row, worldid,
+                        overflow_out)
+      wp.atomic_add(count_out, COUNT_CCD_AS_MPR, 1)
+    return _job_mpr(hfield, b, ms, tp, code, mpr_options)
+
+  @wp.func
+  def _plane_pass(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, spacing: float) -> Candidates:
+    """The face contacts: B's corners against the triangle under each, then each cell's
+    triangles against B's deepest points (and a capsule's ends)."""
+    cands = empty_with_room(NCANDIDATE)  # a face on rough terrain rests on many prisms (_uses_ccd)
+    band = tp.band
+    r0 = tp.window[0]
+    r1 = tp.window[1]
+    c0 = tp.window[2]
+    c1 = tp.window[3]
+    dx, dy = _cell_size(hfield)
+    ncell = (r1 - r0 + 1) * (c1 - c0 + 1)
+    ncorner = _corners(b, ms)
+    nlow = wp.where(b.gtype == GeomType.CAPSULE, 3, 1)  # plane jobs a triangle: B's deepest point, a capsule's ends
+    for item in range(ncorner + ncell):
+      corner = wp.vec3(0.0)
+      r, c = _window_cell(tp, item - ncorner)
+      if item < ncorner:
+        corner = _corner(b, ms, item)
+        c = int(wp.floor((corner[0] + hfield.size[0]) / dx))
+        r = int(wp.floor((corner[1] + hfield.size[1]) / dy))
+        if c < c0 or c > c1 or r < r0 or r > r1:
+          continue
+      p00, p01, p10, p11, na, nb = _cell(hfield, dx, dy, r, c)
+      if _above_cell(tp, p00, p01, p10, p11):
+        continue
+      njob = wp.where(item < ncorner, 1, 2 * nlow)
+      for job in range(njob):
+        t = job // nlow  # the triangle: (p00, p10, p11) or (p00, p11, p01)
+        p = corner
+        if item < ncorner:
+          t = wp.where((corner[1] - p00[1]) / dy >= (corner[0] - p00[0]) / dx, 0, 1)  # above the diagonal: the first
+        n = wp.where(t == 0, na, nb)
+        if item >= ncorner and job % nlow == 0:
+          p = support_world(b, ms, -n)
+        elif item >= ncorner:
+          p = _capsule_end(b, job % nlow - 1, n)
+        depth = _plane_depth(p, p00, wp.where(t == 0, p10, p11), wp.where(t == 0, p11, p01), n, band)
+        if depth > 0.0:
+          cands = add_candidate(cands, p + 0.5 * depth * n, n, depth, spacing)
+    return cands
+
+  return SimpleNamespace(_window=_window, _cell_jobs=_cell_jobs, _job_mpr=_job_mpr, _job_answer=_job_answer,
+                         _plane_pass=_plane_pass)

@@ -6,10 +6,11 @@ interpolated on both surfaces.
 """
 
 import functools
+from types import SimpleNamespace
 
 import warp as wp
 
-from mjx_supportfield.support import support_world
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -49,15 +50,6 @@ class MprResult:
   depth: float
   normal: wp.vec3  # from shape A to shape B
   pos: wp.vec3  # midpoint between the surfaces
-
-
-@wp.func
-def _support(a: Shape, b: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> Vertex:
-  out = Vertex()
-  out.a = support_world(a, ms, d, mode)
-  out.b = support_world(b, ms, -d, mode)
-  out.v = out.a - out.b
-  return out
 
 
 @wp.func
@@ -157,194 +149,7 @@ def interior_point(a: Shape, b: Shape, scale: float) -> Vertex:
   return p0
 
 
-@wp.func
-def apart_along_centres(a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float) -> bool:
-  """Whether A and B are proven apart along the line through their centres: the test of MPR's
-  first step from interior_point, so mpr() from there misses exactly for these pairs."""
-  p0 = interior_point(a, b, scale)
-  d = wp.normalize(-p0.v)
-  return wp.dot(_support(a, b, ms, d, mode).v, d) <= 0.0
-
-
-@wp.func
-def mpr(a: Shape, b: Shape, ms: MeshSupport, mode: int, p0: Vertex, scale: float, tol: float, iterations: int) -> MprResult:
-  """Penetration of A and B by MPR from interior point p0 of A - B; hit == 0 when they do not overlap.
-
-  scale: a length of the pair (degeneracy thresholds are relative to it); tol: convergence
-  tolerance relative to scale; iterations: cap of each loop (no unbounded loop on the GPU).
-  """
-  eps = 1.0e-10 * scale
-  atol = tol * scale
-
-  # portal discovery
-  d = wp.normalize(-p0.v)
-  p1 = _support(a, b, ms, d, mode)
-  if wp.dot(p1.v, d) <= 0.0:
-    return miss()
-  d = wp.cross(p0.v, p1.v)
-  if wp.length(d) < eps * scale:
-    return _single_point(p1)
-  d = wp.normalize(d)
-  p2 = _support(a, b, ms, d, mode)
-  if wp.dot(p2.v, d) <= 0.0:
-    return miss()
-  d = wp.cross(p1.v - p0.v, p2.v - p0.v)
-  if wp.length(d) < eps * scale:
-    return _single_point(p1)
-  d = wp.normalize(d)
-  if wp.dot(d, p0.v) > 0.0:
-    tmp = p1
-    p1 = p2
-    p2 = tmp
-    d = -d
-
-  p3 = Vertex()
-  found = int(0)
-  for _ in range(iterations):
-    p3 = _support(a, b, ms, d, mode)
-    if wp.dot(p3.v, d) <= 0.0:
-      return miss()
-    if wp.dot(wp.cross(p1.v, p3.v), p0.v) < 0.0:
-      p2 = p3
-      d = wp.cross(p1.v - p0.v, p3.v - p0.v)
-    elif wp.dot(wp.cross(p3.v, p2.v), p0.v) < 0.0:
-      p1 = p3
-      d = wp.cross(p3.v - p0.v, p2.v - p0.v)
-    else:
-      found = 1
-      break
-    if wp.length(d) < eps * scale:
-      return _single_point(p1)
-    d = wp.normalize(d)
-  if found == 0:
-    return miss()
-
-  # refine the portal until the origin is behind it, then push it to the boundary
-  inside = int(0)
-  for _ in range(iterations):
-    n = _portal_normal(p1.v, p2.v, p3.v)
-    if inside == 0 and wp.dot(n, p1.v) >= 0.0:
-      inside = 1
-    p4 = _support(a, b, ms, n, mode)
-    d4 = wp.dot(p4.v, n)
-    if inside == 0 and d4 < 0.0:
-      return miss()
-    gap = wp.min(d4 - wp.dot(p1.v, n), wp.min(d4 - wp.dot(p2.v, n), d4 - wp.dot(p3.v, n)))
-    if gap <= atol:
-      break
-    x = wp.cross(p4.v, p0.v)
-    if wp.dot(p1.v, x) > 0.0:
-      if wp.dot(p2.v, x) > 0.0:
-        p1 = p4
-      else:
-        p3 = p4
-    else:
-      if wp.dot(p3.v, x) > 0.0:
-        p2 = p4
-      else:
-        p1 = p4
-  n = _portal_normal(p1.v, p2.v, p3.v)
-  if inside == 0 and wp.dot(n, p1.v) < 0.0:
-    return miss()
-
-  # the portal lies on the boundary of A - B: its plane's distance to the origin is the
-  # depth along its normal (on curved boundaries the plane is the tangent plane there)
-  r = MprResult()
-  r.hit = 1
-  r.normal = n
-  r.depth = wp.max(wp.dot(n, p1.v), 0.0)
-  r.pos = _midpoint(p1, p2, p3, r.depth * n)
-  return r
-
-
-
-@wp.func
-def mpr_refined_from(
-  a: Shape,
-  b: Shape,
-  ms: MeshSupport,
-  mode: int,
-  p0: Vertex,
-  scale: float,
-  tol: float,
-  iterations: int,
-  refine: int,
-  least: float,
-) -> MprResult:
-  """MPR from interior point p0, then up to ``refine`` reruns along the last normal; the
-  shallowest answer wins. The reruns start ``behind_origin(..., least)``.
-
-  MPR answers where the ray from its interior point through the origin leaves A - B: the
-  penetration along that ray, not the smallest one. Restarting from a point behind the origin
-  on the normal (``behind_origin``) sends the ray along the normal; on curved surfaces this
-  walks to the point whose surface normal is the ray, the minimum.
-
-  It stays on the face it found, though: an answer deeper than ``DEEP_RATIO`` x ``scale`` is
-  also checked along both shapes' local axes and rerun along any shallower one (two 1 mm plates
-  crossing at a small angle, offset sideways, came out 0.7 m deep along their length instead of
-  MuJoCo C's 2.5 mm across their thickness).
-  """
-  best = mpr(a, b, ms, mode, p0, scale, tol, iterations)
-  if best.hit == 0:
-    return best
-  # the ray already running along the normal is MPR's fixed point: nothing to refine
-  refining = bool(wp.dot(best.normal, wp.normalize(-p0.v)) <= 1.0 - 1.0e-6)
-  deep = best.depth > DEEP_RATIO * scale
-  k = int(0)  # next local axis to check
-  nrerun = int(0)  # reruns along the normal so far
-  # one MPR call site for the reruns and the axis checks keeps the kernels' stack small
-  for _ in range(refine + LOCAL_AXES):
-    u = wp.vec3(best.normal)
-    start = float(best.depth)
-    if refining and (nrerun >= refine or best.depth <= 1.0e-6 * scale):
-      refining = False
-    if not refining:
-      if not deep:
-        break
-      found = bool(False)
-      while k < LOCAL_AXES and not found:
-        u = _axis(a, b, k)
-        k += 1
-        start = wp.dot(_support(a, b, ms, u, mode).v, u)
-        found = start > 0.0 and start < best.depth - tol * scale
-      if not found:
-        break
-    r = mpr(a, b, ms, mode, behind_origin(a, b, ms, mode, u, start, scale, least), scale, tol, iterations)
-    if refining:
-      nrerun += 1
-      if r.hit == 0 or r.depth >= best.depth - tol * scale:
-        refining = False
-        continue
-      # the same normal again (a flat face of a polytope, or converged): nothing left to gain
-      if wp.dot(r.normal, best.normal) > 1.0 - 1.0e-6:
-        refining = False
-      best = r
-    elif r.hit != 0 and r.depth < best.depth - tol * scale:
-      best = r
-  return best
-
-
 BEHIND = 0.1  # restarts' interior points: this x the pair's scale behind the origin, at most
-
-
-@wp.func
-def behind_origin(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, normal: wp.vec3, depth: float, scale: float, least: float
-) -> Vertex:
-  """An interior point of A - B behind the origin along ``normal``: MPR's ray from there runs
-  along ``normal``.
-
-  Half the larger of ``depth`` and ``least`` x scale behind the origin, but never past half of
-  how far A - B reaches behind it (one support query), so thin shapes keep it inside. With
-  least = 0, half a resting contact's few µm is too close: there the portal search is
-  ill-conditioned and runs out of iterations (tilted MPRs on resting meshes missed that way);
-  BEHIND avoids that.
-  """
-  back = wp.dot(_support(a, b, ms, -normal, mode).v, -normal)
-  dist = wp.max(wp.min(wp.max(depth, least * scale), back), 1.0e-6 * scale)
-  q0 = Vertex()
-  q0.v = -0.5 * dist * normal
-  return q0
 
 
 DEEP_RATIO = 0.1  # MPR depths beyond this x the pair's scale are checked along the shapes' axes
@@ -362,9 +167,207 @@ def _axis(a: Shape, b: Shape, k: int) -> wp.vec3:
   return sign * wp.vec3(rot[0, col], rot[1, col], rot[2, col])
 
 
-@wp.func
-def mpr_refined(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, scale: float, tol: float, iterations: int, refine: int, least: float
-) -> MprResult:
-  """Cold MPR: from the centre difference, refined along the normal (see ``mpr_refined_from``)."""
-  return mpr_refined_from(a, b, ms, mode, interior_point(a, b, scale), scale, tol, iterations, refine, least)
+@functools.lru_cache(maxsize=None)
+def mpr_funcs(mode: int) -> SimpleNamespace:
+  """MPR's device functions on the support functions of support mode ``mode`` (support_funcs):
+  ``apart_along_centres``, ``mpr``, ``mpr_refined_from``, ``behind_origin`` and ``mpr_refined``."""
+  support_world = support_funcs(mode).support_world
+
+  @wp.func
+  def _support(a: Shape, b: Shape, ms: MeshSupport, d: wp.vec3) -> Vertex:
+    out = Vertex()
+    out.a = support_world(a, ms, d)
+    out.b = support_world(b, ms, -d)
+    out.v = out.a - out.b
+    return out
+
+  @wp.func
+  def apart_along_centres(a: Shape, b: Shape, ms: MeshSupport, scale: float) -> bool:
+    """Whether A and B are proven apart along the line through their centres: the test of MPR's
+    first step from interior_point, so mpr() from there misses exactly for these pairs."""
+    p0 = interior_point(a, b, scale)
+    d = wp.normalize(-p0.v)
+    return wp.dot(_support(a, b, ms, d).v, d) <= 0.0
+
+  @wp.func
+  def mpr(a: Shape, b: Shape, ms: MeshSupport, p0: Vertex, scale: float, tol: float, iterations: int) -> MprResult:
+    """Penetration of A and B by MPR from interior point p0 of A - B; hit == 0 when they do not overlap.
+
+    scale: a length of the pair (degeneracy thresholds are relative to it); tol: convergence
+    tolerance relative to scale; iterations: cap of each loop (no unbounded loop on the GPU).
+    """
+    eps = 1.0e-10 * scale
+    atol = tol * scale
+
+    # portal discovery
+    d = wp.normalize(-p0.v)
+    p1 = _support(a, b, ms, d)
+    if wp.dot(p1.v, d) <= 0.0:
+      return miss()
+    d = wp.cross(p0.v, p1.v)
+    if wp.length(d) < eps * scale:
+      return _single_point(p1)
+    d = wp.normalize(d)
+    p2 = _support(a, b, ms, d)
+    if wp.dot(p2.v, d) <= 0.0:
+      return miss()
+    d = wp.cross(p1.v - p0.v, p2.v - p0.v)
+    if wp.length(d) < eps * scale:
+      return _single_point(p1)
+    d = wp.normalize(d)
+    if wp.dot(d, p0.v) > 0.0:
+      tmp = p1
+      p1 = p2
+      p2 = tmp
+      d = -d
+
+    p3 = Vertex()
+    found = int(0)
+    for _ in range(iterations):
+      p3 = _support(a, b, ms, d)
+      if wp.dot(p3.v, d) <= 0.0:
+        return miss()
+      if wp.dot(wp.cross(p1.v, p3.v), p0.v) < 0.0:
+        p2 = p3
+        d = wp.cross(p1.v - p0.v, p3.v - p0.v)
+      elif wp.dot(wp.cross(p3.v, p2.v), p0.v) < 0.0:
+        p1 = p3
+        d = wp.cross(p3.v - p0.v, p2.v - p0.v)
+      else:
+        found = 1
+        break
+      if wp.length(d) < eps * scale:
+        return _single_point(p1)
+      d = wp.normalize(d)
+    if found == 0:
+      return miss()
+
+    # refine the portal until the origin is behind it, then push it to the boundary
+    inside = int(0)
+    for _ in range(iterations):
+      n = _portal_normal(p1.v, p2.v, p3.v)
+      if inside == 0 and wp.dot(n, p1.v) >= 0.0:
+        inside = 1
+      p4 = _support(a, b, ms, n)
+      d4 = wp.dot(p4.v, n)
+      if inside == 0 and d4 < 0.0:
+        return miss()
+      gap = wp.min(d4 - wp.dot(p1.v, n), wp.min(d4 - wp.dot(p2.v, n), d4 - wp.dot(p3.v, n)))
+      if gap <= atol:
+        break
+      x = wp.cross(p4.v, p0.v)
+      if wp.dot(p1.v, x) > 0.0:
+        if wp.dot(p2.v, x) > 0.0:
+          p1 = p4
+        else:
+          p3 = p4
+      else:
+        if wp.dot(p3.v, x) > 0.0:
+          p2 = p4
+        else:
+          p1 = p4
+    n = _portal_normal(p1.v, p2.v, p3.v)
+    if inside == 0 and wp.dot(n, p1.v) < 0.0:
+      return miss()
+
+    # the portal lies on the boundary of A - B: its plane's distance to the origin is the
+    # depth along its normal (on curved boundaries the plane is the tangent plane there)
+    r = MprResult()
+    r.hit = 1
+    r.normal = n
+    r.depth = wp.max(wp.dot(n, p1.v), 0.0)
+    r.pos = _midpoint(p1, p2, p3, r.depth * n)
+    return r
+
+  @wp.func
+  def mpr_refined_from(
+    a: Shape,
+    b: Shape,
+    ms: MeshSupport,
+    p0: Vertex,
+    scale: float,
+    tol: float,
+    iterations: int,
+    refine: int,
+    least: float,
+  ) -> MprResult:
+    """MPR from interior point p0, then up to ``refine`` reruns along the last normal; the
+    shallowest answer wins. The reruns start ``behind_origin(..., least)``.
+
+    MPR answers where the ray from its interior point through the origin leaves A - B: the
+    penetration along that ray, not the smallest one. Restarting from a point behind the origin
+    on the normal (``behind_origin``) sends the ray along the normal; on curved surfaces this
+    walks to the point whose surface normal is the ray, the minimum.
+
+    It stays on the face it found, though: an answer deeper than ``DEEP_RATIO`` x ``scale`` is
+    also checked along both shapes' local axes and rerun along any shallower one (two 1 mm plates
+    crossing at a small angle, offset sideways, came out 0.7 m deep along their length instead of
+    MuJoCo C's 2.5 mm across their thickness).
+    """
+    best = mpr(a, b, ms, p0, scale, tol, iterations)
+    if best.hit == 0:
+      return best
+    # the ray already running along the normal is MPR's fixed point: nothing to refine
+    refining = bool(wp.dot(best.normal, wp.normalize(-p0.v)) <= 1.0 - 1.0e-6)
+    deep = best.depth > DEEP_RATIO * scale
+    k = int(0)  # next local axis to check
+    nrerun = int(0)  # reruns along the normal so far
+    # one MPR call site for the reruns and the axis checks keeps the kernels' stack small
+    for _ in range(refine + LOCAL_AXES):
+      u = wp.vec3(best.normal)
+      start = float(best.depth)
+      if refining and (nrerun >= refine or best.depth <= 1.0e-6 * scale):
+        refining = False
+      if not refining:
+        if not deep:
+          break
+        found = bool(False)
+        while k < LOCAL_AXES and not found:
+          u = _axis(a, b, k)
+          k += 1
+          start = wp.dot(_support(a, b, ms, u).v, u)
+          found = start > 0.0 and start < best.depth - tol * scale
+        if not found:
+          break
+      r = mpr(a, b, ms, behind_origin(a, b, ms, u, start, scale, least), scale, tol, iterations)
+      if refining:
+        nrerun += 1
+        if r.hit == 0 or r.depth >= best.depth - tol * scale:
+          refining = False
+          continue
+        # the same normal again (a flat face of a polytope, or converged): nothing left to gain
+        if wp.dot(r.normal, best.normal) > 1.0 - 1.0e-6:
+          refining = False
+        best = r
+      elif r.hit != 0 and r.depth < best.depth - tol * scale:
+        best = r
+    return best
+
+  @wp.func
+  def behind_origin(
+    a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, depth: float, scale: float, least: float
+  ) -> Vertex:
+    """An interior point of A - B behind the origin along ``normal``: MPR's ray from there runs
+    along ``normal``.
+
+    Half the larger of ``depth`` and ``least`` x scale behind the origin, but never past half of
+    how far A - B reaches behind it (one support query), so thin shapes keep it inside. With
+    least = 0, half a resting contact's few µm is too close: there the portal search is
+    ill-conditioned and runs out of iterations (tilted MPRs on resting meshes missed that way);
+    BEHIND avoids that.
+    """
+    back = wp.dot(_support(a, b, ms, -normal).v, -normal)
+    dist = wp.max(wp.min(wp.max(depth, least * scale), back), 1.0e-6 * scale)
+    q0 = Vertex()
+    q0.v = -0.5 * dist * normal
+    return q0
+
+  @wp.func
+  def mpr_refined(
+    a: Shape, b: Shape, ms: MeshSupport, scale: float, tol: float, iterations: int, refine: int, least: float
+  ) -> MprResult:
+    """Cold MPR: from the centre difference, refined along the normal (see ``mpr_refined_from``)."""
+    return mpr_refined_from(a, b, ms, interior_point(a, b, scale), scale, tol, iterations, refine, least)
+
+  return SimpleNamespace(apart_along_centres=apart_along_centres, mpr=mpr, mpr_refined_from=mpr_refined_from,
+                         behind_origin=behind_origin, mpr_refined=mpr_refined)

@@ -18,24 +18,25 @@ vertex through A''s face that faces B. A face and a support query give each, and
 ray provably leaves through one of them the tilt's answer follows in closed form
 (tilt_closed_form); only the rest (edge against edge, curved sides) run the tilted MPR.
 
-This module owns the tilts' device functions (``tilt_rotation``, ``tilt_closed_form``,
-``tilt_mpr``, ``perturbed_contacts``) and the ``Patch`` they fill, for multicontact_pass.py's
-kernels; it launches nothing.
+This module owns the tilts' device functions (``tilt_rotation``; ``tilt_closed_form``,
+``tilt_mpr``, ``perturbed_contacts``, built for one support mode by ``tilt_funcs``) and the
+``Patch`` they fill, for multicontact_pass.py's kernels; it launches nothing.
 """
+import functools
+from types import SimpleNamespace
+
 import warp as wp
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import BEHIND
-from mjx_supportfield.mpr import behind_origin
-from mjx_supportfield.mpr import mpr
+from mjx_supportfield.mpr import mpr_funcs
 from mjx_supportfield.support import count_supports
 from mjx_supportfield.support import hull_point
-from mjx_supportfield.support import mesh_support_index
-from mjx_supportfield.support import support_world
+from mjx_supportfield.support import REFINED
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import FAR
-from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -79,7 +80,7 @@ def _tilted(a: Shape, pivot: wp.vec3, rot: wp.mat33) -> Shape:
 def _mesh_ties(ms: MeshSupport, mesh: int, d: wp.vec3, rtol: float, slack: float) -> int:
   """1 + the support vertex's hull neighbours that tie with it (capped at 3): enough to tell a
   vertex from an edge from a face, without count_supports' flood fill."""
-  best = mesh_support_index(ms, mesh, d, SUPPORT_REFINED)
+  best = REFINED.mesh_support_index(ms, mesh, d)
   top = wp.dot(hull_point(ms, mesh, best), d)
   extent = wp.max(wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh]), 1.0e-12)
   if ms.nbr_num.shape[0] == 0:
@@ -170,24 +171,6 @@ def _mapped_back(first: MprResult, rot: wp.mat33, pa: wp.vec3, pb: wp.vec3) -> w
 
 
 @wp.func
-def tilt_mpr(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  rot: wp.mat33
-) -> wp.vec4:
-  """MPR with A tilted by ``rot`` about the first contact: the point (xyz) and its depth along
-  the first normal (w), A's witness point rotated back with A; depth MISSED when the tilted
-  shapes do not overlap."""
-  # every tilted MPR starts warm: looking along the first normal, from behind the origin
-  tilted = _tilted(a, first.pos, rot)
-  q0 = behind_origin(tilted, b, ms, mode, first.normal, first.depth, scale, BEHIND)
-  r = mpr(tilted, b, ms, mode, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
-  if r.hit == 0:
-    return wp.vec4(0.0, 0.0, 0.0, MISSED)
-  # witness points in the tilted pose (pa - pb = depth * normal)
-  return _mapped_back(first, rot, r.pos + 0.5 * r.depth * r.normal, r.pos - 0.5 * r.depth * r.normal)
-
-
-@wp.func
 def _polygon_toward(ms: MeshSupport, mesh: int, vertex: int, u: wp.vec3) -> int:
   """The hull polygon (global index) around hull vertex ``vertex`` whose normal is nearest to
   direction u (mesh frame); -1 when the mesh has no polygons. Of coplanar polygons (MuJoCo
@@ -233,39 +216,6 @@ def _in_polygon(ms: MeshSupport, mesh: int, poly: int, x: wp.vec3, tol: float) -
 
 
 @wp.func
-def _face_toward(s: Shape, ms: MeshSupport, u: wp.vec3, mode: int) -> tuple[wp.vec3, wp.vec3, int]:
-  """The flat face of s whose outward normal is nearest to world direction u: its normal and a
-  point of its plane (world; grown by s.inflate) and an id for _in_face (a box face, a
-  cylinder's end, a mesh's hull polygon); id -1 when s has no flat face there."""
-  lu = wp.transpose(s.rot) @ u
-  normal = wp.vec3(0.0)
-  point = wp.vec3(0.0)
-  face = int(-1)
-  if s.gtype == GeomType.BOX:
-    k = int(0)
-    for i in range(1, 3):
-      if wp.abs(lu[i]) > wp.abs(lu[k]):
-        k = i
-    sign = wp.where(lu[k] >= 0.0, 1.0, -1.0)
-    normal[k] = sign
-    point[k] = sign * s.size[k]
-    face = 2 * k + wp.where(sign > 0.0, 1, 0)
-  elif s.gtype == GeomType.CYLINDER:
-    sign = wp.where(lu[2] >= 0.0, 1.0, -1.0)
-    normal = wp.vec3(0.0, 0.0, sign)
-    point = wp.vec3(0.0, 0.0, sign * s.size[1])
-    face = wp.where(sign > 0.0, 1, 0)
-  elif s.gtype == GeomType.MESH:
-    vertex = mesh_support_index(ms, s.mesh, lu, mode)
-    face = _polygon_toward(ms, s.mesh, vertex, lu)
-    if face >= 0:
-      normal = ms.poly_normal[face]
-      point = hull_point(ms, s.mesh, vertex)
-  normal = s.rot @ normal
-  return normal, s.pos + s.rot @ point + s.inflate * normal, face
-
-
-@wp.func
 def _in_face(s: Shape, ms: MeshSupport, face: int, x: wp.vec3, tol: float) -> bool:
   """Whether world point x, in the plane of _face_toward's face ``face`` of s, lies on that face
   (up to tol; the grown box or cylinder stands for s grown by s.inflate)."""
@@ -286,113 +236,173 @@ OFF_FACE = wp.constant(1)
 EXIT_FACE = wp.constant(2)
 
 
-@wp.func
-def _vertex_on_face(v: Shape, f: Shape, ms: MeshSupport, mode: int, ray: wp.vec3, tol: float
-                    ) -> tuple[wp.vec3, wp.vec3, float, int]:
-  """A face of the Minkowski difference V - F seen by MPR's ray from the origin along ``ray``:
-  the flat face of ``f`` facing ``v`` (outward normal nearest to -ray) against the vertex of v
-  deepest through it. Returns that vertex, its foot on the face (MPR's two witness points when
-  the ray leaves V - F through this face), the depth (<= 0: V and F are apart) and NO_FACE
-  (f has no flat face there), OFF_FACE (the ray leaves through another face of V - F, or
-  MPR's witness would not be the foot) or EXIT_FACE.
+@functools.lru_cache(maxsize=None)
+def tilt_funcs(mode: int) -> SimpleNamespace:
+  """The tilts' device functions on the support functions of support mode ``mode``
+  (support_funcs, mpr_funcs): ``tilt_mpr``, ``tilt_closed_form``, ``tilt_point`` and
+  ``perturbed_contacts``."""
+  support = support_funcs(mode)
+  mesh_support_index = support.mesh_support_index
+  support_world = support.support_world
+  mpr = mpr_funcs(mode).mpr
+  behind_origin = mpr_funcs(mode).behind_origin
 
-  The ray meets the face's plane at depth / cos; it leaves V - F there exactly when that point
-  of the plane lies on the face (a convex body's boundary meets the ray once)."""
-  normal, point, face = _face_toward(f, ms, -ray, mode)
-  if face < 0:
-    return wp.vec3(0.0), wp.vec3(0.0), 1.0, NO_FACE
-  m = -normal  # the outward normal of this face of V - F
-  vertex = support_world(v, ms, m, mode)
-  depth = wp.dot(vertex - point, m)
-  foot = vertex - depth * m
-  cos = wp.dot(ray, m)
-  status = OFF_FACE
-  if cos > 0.0 and _in_face(f, ms, face, vertex - depth / cos * ray, tol) and _in_face(f, ms, face, foot, tol):
-    status = EXIT_FACE
-  return vertex, foot, depth, status
+  @wp.func
+  def tilt_mpr(
+    a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: float, tol: float, iterations: int,
+    rot: wp.mat33
+  ) -> wp.vec4:
+    """MPR with A tilted by ``rot`` about the first contact: the point (xyz) and its depth along
+    the first normal (w), A's witness point rotated back with A; depth MISSED when the tilted
+    shapes do not overlap."""
+    # every tilted MPR starts warm: looking along the first normal, from behind the origin
+    tilted = _tilted(a, first.pos, rot)
+    q0 = behind_origin(tilted, b, ms, first.normal, first.depth, scale, BEHIND)
+    r = mpr(tilted, b, ms, q0, scale, wp.max(tol, TILT_TOL), wp.min(iterations, TILT_ITERATIONS))
+    if r.hit == 0:
+      return wp.vec4(0.0, 0.0, 0.0, MISSED)
+    # witness points in the tilted pose (pa - pb = depth * normal)
+    return _mapped_back(first, rot, r.pos + 0.5 * r.depth * r.normal, r.pos - 0.5 * r.depth * r.normal)
 
+  @wp.func
+  def _face_toward(s: Shape, ms: MeshSupport, u: wp.vec3) -> tuple[wp.vec3, wp.vec3, int]:
+    """The flat face of s whose outward normal is nearest to world direction u: its normal and a
+    point of its plane (world; grown by s.inflate) and an id for _in_face (a box face, a
+    cylinder's end, a mesh's hull polygon); id -1 when s has no flat face there."""
+    lu = wp.transpose(s.rot) @ u
+    normal = wp.vec3(0.0)
+    point = wp.vec3(0.0)
+    face = int(-1)
+    if s.gtype == GeomType.BOX:
+      k = int(0)
+      for i in range(1, 3):
+        if wp.abs(lu[i]) > wp.abs(lu[k]):
+          k = i
+      sign = wp.where(lu[k] >= 0.0, 1.0, -1.0)
+      normal[k] = sign
+      point[k] = sign * s.size[k]
+      face = 2 * k + wp.where(sign > 0.0, 1, 0)
+    elif s.gtype == GeomType.CYLINDER:
+      sign = wp.where(lu[2] >= 0.0, 1.0, -1.0)
+      normal = wp.vec3(0.0, 0.0, sign)
+      point = wp.vec3(0.0, 0.0, sign * s.size[1])
+      face = wp.where(sign > 0.0, 1, 0)
+    elif s.gtype == GeomType.MESH:
+      vertex = mesh_support_index(ms, s.mesh, lu)
+      face = _polygon_toward(ms, s.mesh, vertex, lu)
+      if face >= 0:
+        normal = ms.poly_normal[face]
+        point = hull_point(ms, s.mesh, vertex)
+    normal = s.rot @ normal
+    return normal, s.pos + s.rot @ point + s.inflate * normal, face
 
-@wp.func
-def tilt_closed_form(a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, rot: wp.mat33
-                     ) -> wp.vec4:
-  """tilt_mpr's answer without MPR where the tilted MPR's ray leaves A' - B (A' = A tilted by
-  ``rot`` about the first contact) through a vertex of one shape against a flat face of the
-  other; depth UNKNOWN where it does not (edge against edge, curved faces) or may not.
+  @wp.func
+  def _vertex_on_face(v: Shape, f: Shape, ms: MeshSupport, ray: wp.vec3, tol: float
+                      ) -> tuple[wp.vec3, wp.vec3, float, int]:
+    """A face of the Minkowski difference V - F seen by MPR's ray from the origin along ``ray``:
+    the flat face of ``f`` facing ``v`` (outward normal nearest to -ray) against the vertex of v
+    deepest through it. Returns that vertex, its foot on the face (MPR's two witness points when
+    the ray leaves V - F through this face), the depth (<= 0: V and F are apart) and NO_FACE
+    (f has no flat face there), OFF_FACE (the ray leaves through another face of V - F, or
+    MPR's witness would not be the foot) or EXIT_FACE.
 
-  MPR's ray runs along the first normal n. Two faces of A' - B are tried: A''s vertex deepest
-  through B's face that faces A, and B's vertex deepest through A''s face that faces B (a
-  face of B - A', whose ray runs along -n). Either proves the shapes apart when its depth is
-  not positive, as MPR's own first step would.
-  """
-  at = _tilted(a, first.pos, rot)
-  n = first.normal
-  tol = ON_FACE_TOL * scale
-  va, foot_b, depth_a, status_a = _vertex_on_face(at, b, ms, mode, n, tol)
-  vb, foot_a, depth_b, status_b = _vertex_on_face(b, at, ms, mode, -n, tol)
-  if (status_a != NO_FACE and depth_a <= 0.0) or (status_b != NO_FACE and depth_b <= 0.0):
-    return wp.vec4(0.0, 0.0, 0.0, MISSED)
-  if status_a == EXIT_FACE:
-    return _mapped_back(first, rot, va, foot_b)
-  if status_b == EXIT_FACE:
-    return _mapped_back(first, rot, foot_a, vb)
-  return wp.vec4(0.0, 0.0, 0.0, UNKNOWN)
+    The ray meets the face's plane at depth / cos; it leaves V - F there exactly when that point
+    of the plane lies on the face (a convex body's boundary meets the ray once)."""
+    normal, point, face = _face_toward(f, ms, -ray)
+    if face < 0:
+      return wp.vec3(0.0), wp.vec3(0.0), 1.0, NO_FACE
+    m = -normal  # the outward normal of this face of V - F
+    vertex = support_world(v, ms, m)
+    depth = wp.dot(vertex - point, m)
+    foot = vertex - depth * m
+    cos = wp.dot(ray, m)
+    status = OFF_FACE
+    if cos > 0.0 and _in_face(f, ms, face, vertex - depth / cos * ray, tol) and _in_face(f, ms, face, foot, tol):
+      status = EXIT_FACE
+    return vertex, foot, depth, status
 
+  @wp.func
+  def tilt_closed_form(a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: float, rot: wp.mat33
+                       ) -> wp.vec4:
+    """tilt_mpr's answer without MPR where the tilted MPR's ray leaves A' - B (A' = A tilted by
+    ``rot`` about the first contact) through a vertex of one shape against a flat face of the
+    other; depth UNKNOWN where it does not (edge against edge, curved faces) or may not.
 
-@wp.func
-def tilt_point(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  rot: wp.mat33
-) -> wp.vec4:
-  """A tilt's point and depth (see tilt_mpr): in closed form where it can be, else by MPR."""
-  q = tilt_closed_form(a, b, ms, mode, first, scale, rot)
-  if q[3] == UNKNOWN:
-    q = tilt_mpr(a, b, ms, mode, first, scale, tol, iterations, rot)
-  return q
+    MPR's ray runs along the first normal n. Two faces of A' - B are tried: A''s vertex deepest
+    through B's face that faces A, and B's vertex deepest through A''s face that faces B (a
+    face of B - A', whose ray runs along -n). Either proves the shapes apart when its depth is
+    not positive, as MPR's own first step would.
+    """
+    at = _tilted(a, first.pos, rot)
+    n = first.normal
+    tol = ON_FACE_TOL * scale
+    va, foot_b, depth_a, status_a = _vertex_on_face(at, b, ms, n, tol)
+    vb, foot_a, depth_b, status_b = _vertex_on_face(b, at, ms, -n, tol)
+    if (status_a != NO_FACE and depth_a <= 0.0) or (status_b != NO_FACE and depth_b <= 0.0):
+      return wp.vec4(0.0, 0.0, 0.0, MISSED)
+    if status_a == EXIT_FACE:
+      return _mapped_back(first, rot, va, foot_b)
+    if status_b == EXIT_FACE:
+      return _mapped_back(first, rot, foot_a, vb)
+    return wp.vec4(0.0, 0.0, 0.0, UNKNOWN)
 
+  @wp.func
+  def tilt_point(
+    a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: float, tol: float, iterations: int,
+    rot: wp.mat33
+  ) -> wp.vec4:
+    """A tilt's point and depth (see tilt_mpr): in closed form where it can be, else by MPR."""
+    q = tilt_closed_form(a, b, ms, first, scale, rot)
+    if q[3] == UNKNOWN:
+      q = tilt_mpr(a, b, ms, first, scale, tol, iterations, rot)
+    return q
 
-@wp.func
-def perturbed_contacts(
-  a: Shape, b: Shape, ms: MeshSupport, mode: int, first: MprResult, scale: float, tol: float, iterations: int,
-  eps: float, min_spacing: float, attempts: wp.array2d(dtype=wp.vec4), row: int
-) -> Patch:
-  """Up to NPERTURB further contact points of A and B around ``first`` (see the module doc).
+  @wp.func
+  def perturbed_contacts(
+    a: Shape, b: Shape, ms: MeshSupport, first: MprResult, scale: float, tol: float, iterations: int,
+    eps: float, min_spacing: float, attempts: wp.array2d(dtype=wp.vec4), row: int
+  ) -> Patch:
+    """Up to NPERTURB further contact points of A and B around ``first`` (see the module doc).
 
-  With ``row`` >= 0, ``attempts[row, attempt * NPERTURB + k]`` holds tilt_point of that tilt
-  and attempt, computed beforehand in parallel; with row < 0 the attempts are computed here, as
-  needed.
-  """
-  patch = Patch()
-  patch.n = 0
-  for k in range(NPERTURB):
-    for attempt in range(2):
-      q = wp.vec4()
-      if row >= 0:
-        q = attempts[row, attempt * NPERTURB + k]
-      else:
-        q = tilt_point(a, b, ms, mode, first, scale, tol, iterations, tilt_rotation(first.normal, eps, k, attempt))
-      if q[3] == MISSED:
+    With ``row`` >= 0, ``attempts[row, attempt * NPERTURB + k]`` holds tilt_point of that tilt
+    and attempt, computed beforehand in parallel; with row < 0 the attempts are computed here, as
+    needed.
+    """
+    patch = Patch()
+    patch.n = 0
+    for k in range(NPERTURB):
+      for attempt in range(2):
+        q = wp.vec4()
+        if row >= 0:
+          q = attempts[row, attempt * NPERTURB + k]
+        else:
+          q = tilt_point(a, b, ms, first, scale, tol, iterations, tilt_rotation(first.normal, eps, k, attempt))
+        if q[3] == MISSED:
+          break
+        pos = wp.vec3(q[0], q[1], q[2])
+        depth = q[3]
+        if attempt == 1:
+          # a steep tilt's point is no deeper than the first contact: its float32 noise made one
+          # deeper than the shapes' overlap
+          depth = wp.min(depth, first.depth)
+          if wp.length(pos - first.pos) < min_spacing:
+            # the steeper tilt found the first contact again: keep MPR's exact point, not this copy
+            depth = first.depth
+            pos = first.pos
+        if depth <= 0.0:
+          break
+        dup = bool(False)
+        for j in range(patch.n):
+          if wp.length(pos - wp.vec3(patch.pos[j, 0], patch.pos[j, 1], patch.pos[j, 2])) < min_spacing:
+            dup = True
+        if dup or (attempt == 0 and wp.length(pos - first.pos) < min_spacing):
+          continue  # back where a point already is: tilt steeper
+        for c in range(3):
+          patch.pos[patch.n, c] = pos[c]
+        patch.depth[patch.n] = depth
+        patch.n += 1
         break
-      pos = wp.vec3(q[0], q[1], q[2])
-      depth = q[3]
-      if attempt == 1:
-        # a steep tilt's point is no deeper than the first contact: its float32 noise made one
-        # deeper than the shapes' overlap
-        depth = wp.min(depth, first.depth)
-        if wp.length(pos - first.pos) < min_spacing:
-          # the steeper tilt found the first contact again: keep MPR's exact point, not this copy
-          depth = first.depth
-          pos = first.pos
-      if depth <= 0.0:
-        break
-      dup = bool(False)
-      for j in range(patch.n):
-        if wp.length(pos - wp.vec3(patch.pos[j, 0], patch.pos[j, 1], patch.pos[j, 2])) < min_spacing:
-          dup = True
-      if dup or (attempt == 0 and wp.length(pos - first.pos) < min_spacing):
-        continue  # back where a point already is: tilt steeper
-      for c in range(3):
-        patch.pos[patch.n, c] = pos[c]
-      patch.depth[patch.n] = depth
-      patch.n += 1
-      break
-  return patch
+    return patch
+
+  return SimpleNamespace(tilt_mpr=tilt_mpr, tilt_closed_form=tilt_closed_form, tilt_point=tilt_point,
+                         perturbed_contacts=perturbed_contacts)

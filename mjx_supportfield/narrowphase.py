@@ -27,14 +27,12 @@ from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
 from mjx_supportfield.contact_quota import rows
 from mjx_supportfield.contact_quota import write_row
-from mjx_supportfield.gjk import gjk_epa
+from mjx_supportfield.gjk import gjk_funcs
 from mjx_supportfield.mpr import BEHIND
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import MprSettings
-from mjx_supportfield.mpr import apart_along_centres
-from mjx_supportfield.mpr import behind_origin
 from mjx_supportfield.mpr import interior_point
-from mjx_supportfield.mpr import mpr_refined_from
+from mjx_supportfield.mpr import mpr_funcs
 from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.multicontact import NPERTURB
 from mjx_supportfield.multicontact import TILT_GROWTH
@@ -49,11 +47,12 @@ from mjx_supportfield.routing import QUEUE_MPR
 from mjx_supportfield.routing import PairQueues
 from mjx_supportfield.sdf import MeshSdf
 from mjx_supportfield.sdf import needs_sdf
-from mjx_supportfield.sdf import sdf_contact
+from mjx_supportfield.sdf import sdf_funcs
 from mjx_supportfield.shapes import posed_pair
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import mode_module
 
 # the factories' module="unique" kernels take Warp's global options, not this module's:
 # they turn adjoints off themselves
@@ -364,76 +363,87 @@ def wants_patch(
   return max_contacts > 1 and not one_point and patch_possible(a, b, ms, res.normal, tilt, res.depth)
 
 
-@wp.func
-def _apart(
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  ms: MeshSupport,
-  support_mode: int,
-  geoms: wp.vec2i,
-  pairid: int,
-  worldid: int,
-) -> bool:
-  """apart_along_centres for a pair as convex_narrowphase poses it (A grown by the margin band)."""
-  margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid, worldid)
-  a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
-                           wp.max(margin + gap, 0.0), geoms, worldid)
-  return apart_along_centres(a, b, ms, support_mode, scale)
+@functools.lru_cache(maxsize=None)
+def sift_mpr_pairs(mode: int) -> wp.Kernel:
+  """The sift of MPR's candidates for support mode ``mode``, in that mode's module
+  (types.mode_module)."""
+  apart_along_centres = mpr_funcs(mode).apart_along_centres
+
+  @wp.func
+  def _apart(
+    geom_type: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    ms: MeshSupport,
+    geoms: wp.vec2i,
+    pairid: int,
+    worldid: int,
+  ) -> bool:
+    """apart_along_centres for a pair as convex_narrowphase poses it (A grown by the margin band)."""
+    margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid, worldid)
+    a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
+                             wp.max(margin + gap, 0.0), geoms, worldid)
+    return apart_along_centres(a, b, ms, scale)
 
 
-@wp.kernel
-def sift_mpr_pairs(
-  # Model:
-  geom_type: wp.array(dtype=int),
-  geom_dataid: wp.array2d(dtype=int),
-  geom_size: wp.array2d(dtype=wp.vec3),
-  geom_rbound: wp.array2d(dtype=float),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  # Data in:
-  geom_xpos_in: wp.array2d(dtype=wp.vec3),
-  geom_xmat_in: wp.array2d(dtype=wp.mat33),
-  # In:
-  ms: MeshSupport,
-  support_mode: int,
-  pair_in: wp.array(dtype=wp.vec2i),
-  pairid_in: wp.array(dtype=wp.vec2i),
-  pair_worldid_in: wp.array(dtype=int),
-  nthread: int,
-  # Out:
-  queues: PairQueues,
-):
-  """Moves the MPR pairs that MPR's first step does not prove apart (two support points,
-  apart_along_centres) from QUEUE_CANDIDATE to QUEUE_MPR: in a pile most broad-phase pairs are
-  such near misses, and in the MPR kernel's warps their lanes idled beside the pairs that touch."""
-  tid = wp.tid()
-  for i in range(tid, queues.count[QUEUE_CANDIDATE], nthread):
-    cid = queues.pair[QUEUE_CANDIDATE, i]
-    if not _apart(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
-                  geom_xpos_in, geom_xmat_in, ms, support_mode, pair_in[cid], pairid_in[cid][0], pair_worldid_in[cid]):
-      slot = wp.atomic_add(queues.count, QUEUE_MPR, 1)
-      queues.pair[QUEUE_MPR, slot] = cid
+  @wp.kernel(module=mode_module(__name__, mode))
+  def sift_mpr_pairs(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    # In:
+    ms: MeshSupport,
+    pair_in: wp.array(dtype=wp.vec2i),
+    pairid_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    nthread: int,
+    # Out:
+    queues: PairQueues,
+  ):
+    """Moves the MPR pairs that MPR's first step does not prove apart (two support points,
+    apart_along_centres) from QUEUE_CANDIDATE to QUEUE_MPR: in a pile most broad-phase pairs are
+    such near misses, and in the MPR kernel's warps their lanes idled beside the pairs that touch."""
+    tid = wp.tid()
+    for i in range(tid, queues.count[QUEUE_CANDIDATE], nthread):
+      cid = queues.pair[QUEUE_CANDIDATE, i]
+      if not _apart(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap,
+                    geom_xpos_in, geom_xmat_in, ms, pair_in[cid], pairid_in[cid][0], pair_worldid_in[cid]):
+        slot = wp.atomic_add(queues.count, QUEUE_MPR, 1)
+        queues.pair[QUEUE_MPR, slot] = cid
+
+  return sift_mpr_pairs
 
 
 @functools.lru_cache(maxsize=None)
-def convex_kernel(use_gjk: bool):
+def convex_kernel(use_gjk: bool, mode: int):
   """The narrow-phase kernel of the convex pairs that are not analytic: penetration by MPR
-  (warm-started, refined), or, with ``use_gjk``, by GJK/EPA (gjk.py).
+  (warm-started, refined), or, with ``use_gjk``, by GJK/EPA (gjk.py), on the support functions
+  of support mode ``mode``.
 
   Each variant walks its own queue (queue_pair). Two kernels, not one branch: EPA's polytope
   takes about 10 KB of stack a thread, and inlined beside MPR it made every MPR pair slower on
   the GPU.
   """
+  gjk_epa = gjk_funcs(mode).gjk_epa
+  behind_origin = mpr_funcs(mode).behind_origin
+  mpr_refined_from = mpr_funcs(mode).mpr_refined_from
+  sdf_contact = sdf_funcs(mode).sdf_contact
 
   @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
   def convex_narrowphase(
@@ -465,7 +475,6 @@ def convex_kernel(use_gjk: bool):
     naconmax_in: int,
     # In:
     ms: MeshSupport,
-    support_mode: int,
     mpr_options: MprSettings,
     max_contacts: int,
     mc_perturbation: float,
@@ -561,7 +570,7 @@ def convex_kernel(use_gjk: bool):
       last = wp.vec4(0.0)
       checked = int(warmstart.NEVER)
       if wp.static(use_gjk):
-        res = gjk_epa(a, b, ms, support_mode, scale, mpr_options.tolerance, mpr_options.iterations)
+        res = gjk_epa(a, b, ms, scale, mpr_options.tolerance, mpr_options.iterations)
       else:
         if warm_start:
           last, checked = warmstart.lookup(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_slot_checked, now, worldid,
@@ -575,8 +584,8 @@ def convex_kernel(use_gjk: bool):
             wp.atomic_add(ws_misses, 0, 1)
           q0 = interior_point(a, b, scale)
           if attempt == 0 and last[3] > 0.0:
-            q0 = behind_origin(a, b, ms, support_mode, wp.vec3(last[0], last[1], last[2]), last[3], scale, BEHIND)
-          res = mpr_refined_from(a, b, ms, support_mode, q0, scale, mpr_options.tolerance, mpr_options.iterations,
+            q0 = behind_origin(a, b, ms, wp.vec3(last[0], last[1], last[2]), last[3], scale, BEHIND)
+          res = mpr_refined_from(a, b, ms, q0, scale, mpr_options.tolerance, mpr_options.iterations,
                                  mpr_options.refine, BEHIND)
       if res.hit == 0:
         continue
@@ -588,7 +597,7 @@ def convex_kernel(use_gjk: bool):
       if not wp.static(use_gjk) and needs_sdf(res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2], sdf_ratio):
         bare = a  # the SDFs measure the true surfaces; A keeps its margin band for multi-contact
         bare.inflate = 0.0
-        fallback = sdf_contact(bare, b, ms, sdf, support_mode, 1.0e-4 * scale)
+        fallback = sdf_contact(bare, b, ms, sdf, 1.0e-4 * scale)
         if fallback.hit and fallback.depth + band < res.depth:
           res.depth = fallback.depth + band
           res.normal = fallback.normal
@@ -687,14 +696,15 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
   # analytic pairs are cheap: as many threads as contacts fit, as stock MuJoCo Warp launches them
   nthread_analytic = max(1, min(nthread, d.naconmax))
   opt = c.options
+  mode = SUPPORT_MODE_ID[opt.support_mode]
   gjk_all = opt.narrowphase == "gjk"
   if c.mpr_types and not gjk_all:
     wp.launch(
-      sift_mpr_pairs,
+      sift_mpr_pairs(mode),
       dim=nthread,
       inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-              m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, SUPPORT_MODE_ID[opt.support_mode],
-              pairs.pair, pairs.pairid, pairs.pair_worldid, nthread],
+              m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, pairs.pair, pairs.pairid, pairs.pair_worldid,
+              nthread],
       outputs=[b.queues],
     )
   if c.analytic_types:
@@ -718,14 +728,13 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
     if (use_gjk and not (gjk_all or c.has_core_pairs)) or (not use_gjk and gjk_all):
       continue
     wp.launch(
-      convex_kernel(use_gjk),
+      convex_kernel(use_gjk, mode),
       dim=nthread,
       inputs=[
         m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
         m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
         m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-        SUPPORT_MODE_ID[opt.support_mode], settings_of(opt),
+        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, settings_of(opt),
         opt.max_contacts_per_pair if opt.multi_contact else 1, opt.mc_perturbation,
         c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
         warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,

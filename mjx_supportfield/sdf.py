@@ -5,8 +5,10 @@ along its longest side) with Warp's winding-number mesh queries, and cached on d
 the hull's content. Primitives use closed forms.
 """
 
+import functools
 import hashlib
 import os
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
@@ -16,7 +18,7 @@ from mujoco_warp._src.types import GeomType
 from mjx_supportfield.hull_graph import hull_graph
 from mjx_supportfield.support import GRID_DIRECTIONS
 from mjx_supportfield.support import hull_point
-from mjx_supportfield.support import support_world
+from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -199,45 +201,54 @@ class SdfContact:
   pos: wp.vec3
 
 
-@wp.func
-def sample_point(s: Shape, ms: MeshSupport, mode: int, n: int) -> wp.vec3:
-  """Sample n of a shape: its hull vertices (meshes), else support points in the GRID_DIRECTIONS;
-  the last sample is the interior point (world frame)."""
-  if s.gtype == GeomType.MESH:
-    if n < ms.hull_num[s.mesh]:
-      return s.pos + s.rot @ hull_point(ms, s.mesh, n)
-    return s.center
-  if n == GRID_DIRECTIONS:
-    return s.center
-  m = wp.where(n >= 13, n + 1, n)  # skip the grid's centre
-  d = wp.vec3(float(m % 3 - 1), float((m // 3) % 3 - 1), float(m // 9 - 1))
-  return support_world(s, ms, d, mode)
+@functools.lru_cache(maxsize=None)
+def sdf_funcs(mode: int) -> SimpleNamespace:
+  """The SDF fallback's device functions on the support functions of support mode ``mode``
+  (support_funcs): ``sample_point`` and ``sdf_contact``."""
+  support_world = support_funcs(mode).support_world
+
+  @wp.func
+  def sample_point(s: Shape, ms: MeshSupport, n: int) -> wp.vec3:
+    """Sample n of a shape: its hull vertices (meshes), else support points in the GRID_DIRECTIONS;
+    the last sample is the interior point (world frame)."""
+    if s.gtype == GeomType.MESH:
+      if n < ms.hull_num[s.mesh]:
+        return s.pos + s.rot @ hull_point(ms, s.mesh, n)
+      return s.center
+    if n == GRID_DIRECTIONS:
+      return s.center
+    m = wp.where(n >= 13, n + 1, n)  # skip the grid's centre
+    d = wp.vec3(float(m % 3 - 1), float((m // 3) % 3 - 1), float(m // 9 - 1))
+    return support_world(s, ms, d)
+
+  @wp.func
+  def sdf_contact(a: Shape, b: Shape, ms: MeshSupport, sdf: MeshSdf, h: float) -> SdfContact:
+    """Deepest sample of A in B's SDF, or of B in A's; the normal is that SDF's gradient there."""
+    best = SdfContact()
+    best.hit = 0
+    best.depth = 0.0
+    for side in range(2):
+      src = a
+      dst = b
+      if side == 1:
+        src = b
+        dst = a
+      nsample = GRID_DIRECTIONS + 1
+      if src.gtype == GeomType.MESH:
+        nsample = ms.hull_num[src.mesh] + 1
+      for n in range(nsample):
+        p = sample_point(src, ms, n)
+        depth = -shape_sdf(dst, sdf, p)
+        if depth > best.depth:
+          grad = shape_sdf_grad(dst, sdf, p, h)
+          best.hit = 1
+          best.depth = depth
+          # A's point out of B: B moves along -grad_B; B's point out of A: B moves along +grad_A
+          best.normal = wp.where(side == 0, -grad, grad)
+          # midpoint between p and the other surface, depth away along the normal
+          best.pos = p + wp.where(side == 0, -0.5, 0.5) * depth * best.normal
+    return best
+
+  return SimpleNamespace(sample_point=sample_point, sdf_contact=sdf_contact)
 
 
-@wp.func
-def sdf_contact(a: Shape, b: Shape, ms: MeshSupport, sdf: MeshSdf, mode: int, h: float) -> SdfContact:
-  """Deepest sample of A in B's SDF, or of B in A's; the normal is that SDF's gradient there."""
-  best = SdfContact()
-  best.hit = 0
-  best.depth = 0.0
-  for side in range(2):
-    src = a
-    dst = b
-    if side == 1:
-      src = b
-      dst = a
-    nsample = GRID_DIRECTIONS + 1
-    if src.gtype == GeomType.MESH:
-      nsample = ms.hull_num[src.mesh] + 1
-    for n in range(nsample):
-      p = sample_point(src, ms, mode, n)
-      depth = -shape_sdf(dst, sdf, p)
-      if depth > best.depth:
-        grad = shape_sdf_grad(dst, sdf, p, h)
-        best.hit = 1
-        best.depth = depth
-        # A's point out of B: B moves along -grad_B; B's point out of A: B moves along +grad_A
-        best.normal = wp.where(side == 0, -grad, grad)
-        # midpoint between p and the other surface, depth away along the normal
-        best.pos = p + wp.where(side == 0, -0.5, 0.5) * depth * best.normal
-  return best

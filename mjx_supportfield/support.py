@@ -1,4 +1,11 @@
-"""Support functions: closed forms for primitives, the support field for convex meshes."""
+"""Support functions: closed forms for primitives, the support field for convex meshes.
+
+The stage every narrow phase queries; ``support_funcs(mode)`` builds its functions for one
+support mode (Options.support_mode), fixed when the kernels are generated.
+"""
+
+import functools
+from types import SimpleNamespace
 
 import warp as wp
 from mujoco_warp._src.types import GeomType
@@ -140,46 +147,6 @@ def hull_scan(ms: MeshSupport, mesh: int, d: wp.vec3) -> int:
 
 
 @wp.func
-def mesh_support_index(ms: MeshSupport, mesh: int, d: wp.vec3, mode: int) -> int:
-  """Local hull index of the support vertex of a mesh in direction d (mesh frame)."""
-  if mode == SUPPORT_EXACT or ms.field_res[mesh] == 0:
-    return hull_scan(ms, mesh, d)
-  best, proven = field_lookup(ms, mesh, d, mode != SUPPORT_FIELD)
-  if mode == SUPPORT_REFINED and not proven:
-    best = hill_climb(ms, mesh, best, d)
-  return best
-
-
-@wp.func
-def support_local(gtype: int, size: wp.vec3, mesh: int, ms: MeshSupport, d: wp.vec3, mode: int) -> wp.vec3:
-  """Support point of a geom in its own frame for direction d (need not be unit)."""
-  if gtype == GeomType.SPHERE:
-    return size[0] * wp.normalize(d)
-  if gtype == GeomType.BOX:
-    return wp.vec3(
-      wp.where(d[0] >= 0.0, size[0], -size[0]),
-      wp.where(d[1] >= 0.0, size[1], -size[1]),
-      wp.where(d[2] >= 0.0, size[2], -size[2]),
-    )
-  if gtype == GeomType.CAPSULE:
-    return wp.vec3(0.0, 0.0, wp.where(d[2] >= 0.0, size[1], -size[1])) + size[0] * wp.normalize(d)
-  if gtype == GeomType.ELLIPSOID:
-    s2 = wp.cw_mul(wp.cw_mul(size, size), d)
-    return s2 / wp.max(wp.sqrt(wp.dot(s2, d)), 1.0e-30)
-  if gtype == GeomType.CYLINDER:
-    rxy = wp.sqrt(d[0] * d[0] + d[1] * d[1])
-    x = float(0.0)
-    y = float(0.0)
-    if rxy > 1.0e-12:
-      x = size[0] * d[0] / rxy
-      y = size[0] * d[1] / rxy
-    return wp.vec3(x, y, wp.where(d[2] >= 0.0, size[1], -size[1]))
-  if gtype == GeomType.MESH:
-    return hull_point(ms, mesh, mesh_support_index(ms, mesh, d, mode))
-  return wp.vec3(0.0)
-
-
-@wp.func
 def prism_support(top: wp.mat33, bottom: float, d: wp.vec3) -> wp.vec3:
   """Support point of a vertical triangular prism: top vertices in the rows of ``top``, base at
   z = bottom (a heightfield cell's half, see heightfield.py)."""
@@ -193,21 +160,83 @@ def prism_support(top: wp.mat33, bottom: float, d: wp.vec3) -> wp.vec3:
   return wp.vec3(top[best, 0], top[best, 1], wp.where(d[2] > 0.0, top[best, 2], bottom))
 
 
-@wp.func
-def support_world(s: Shape, ms: MeshSupport, d: wp.vec3, mode: int) -> wp.vec3:
-  """Support point of a posed shape (inflated by s.inflate) for world direction d.
+@functools.lru_cache(maxsize=None)
+def support_funcs(mode: int) -> SimpleNamespace:
+  """The support functions of support mode ``mode`` (types.SUPPORT_*): ``mesh_support_index``,
+  ``support_local`` and ``support_world``.
 
-  A HFIELD shape is one prism of a heightfield in the query's frame: top vertices in the
-  rows of ``rot``, base height in ``size[0]``, ``pos`` zero.
+  The mode is fixed when the kernels that call them are generated, not read at run time: each
+  stage above (mpr_funcs, gjk_funcs, ...) builds its device functions on these for one mode, and
+  the kernel factories on those, so a model compiles only its own mode's code.
   """
-  p = wp.vec3(0.0)
-  if s.gtype == GeomType.HFIELD:
-    p = prism_support(s.rot, s.size[0], d)
-  else:
-    p = s.pos + s.rot @ support_local(s.gtype, s.size, s.mesh, ms, wp.transpose(s.rot) @ d, mode)
-  if s.inflate > 0.0:
-    p = p + s.inflate * wp.normalize(d)
-  return p
+
+  @wp.func
+  def mesh_support_index(ms: MeshSupport, mesh: int, d: wp.vec3) -> int:
+    """Local hull index of the support vertex of a mesh in direction d (mesh frame)."""
+    # the static branches are resolved when the kernel is generated: one mode's code holds
+    # only its own query (an else, not code after a return, which would still be generated)
+    if wp.static(mode == SUPPORT_EXACT):
+      return hull_scan(ms, mesh, d)
+    else:
+      if ms.field_res[mesh] == 0:
+        return hull_scan(ms, mesh, d)
+      best, proven = field_lookup(ms, mesh, d, wp.static(mode != SUPPORT_FIELD))
+      if wp.static(mode == SUPPORT_REFINED):
+        if not proven:
+          best = hill_climb(ms, mesh, best, d)
+      return best
+
+  @wp.func
+  def support_local(gtype: int, size: wp.vec3, mesh: int, ms: MeshSupport, d: wp.vec3) -> wp.vec3:
+    """Support point of a geom in its own frame for direction d (need not be unit)."""
+    if gtype == GeomType.SPHERE:
+      return size[0] * wp.normalize(d)
+    if gtype == GeomType.BOX:
+      return wp.vec3(
+        wp.where(d[0] >= 0.0, size[0], -size[0]),
+        wp.where(d[1] >= 0.0, size[1], -size[1]),
+        wp.where(d[2] >= 0.0, size[2], -size[2]),
+      )
+    if gtype == GeomType.CAPSULE:
+      return wp.vec3(0.0, 0.0, wp.where(d[2] >= 0.0, size[1], -size[1])) + size[0] * wp.normalize(d)
+    if gtype == GeomType.ELLIPSOID:
+      s2 = wp.cw_mul(wp.cw_mul(size, size), d)
+      return s2 / wp.max(wp.sqrt(wp.dot(s2, d)), 1.0e-30)
+    if gtype == GeomType.CYLINDER:
+      rxy = wp.sqrt(d[0] * d[0] + d[1] * d[1])
+      x = float(0.0)
+      y = float(0.0)
+      if rxy > 1.0e-12:
+        x = size[0] * d[0] / rxy
+        y = size[0] * d[1] / rxy
+      return wp.vec3(x, y, wp.where(d[2] >= 0.0, size[1], -size[1]))
+    if gtype == GeomType.MESH:
+      return hull_point(ms, mesh, mesh_support_index(ms, mesh, d))
+    return wp.vec3(0.0)
+
+  @wp.func
+  def support_world(s: Shape, ms: MeshSupport, d: wp.vec3) -> wp.vec3:
+    """Support point of a posed shape (inflated by s.inflate) for world direction d.
+
+    A HFIELD shape is one prism of a heightfield in the query's frame: top vertices in the
+    rows of ``rot``, base height in ``size[0]``, ``pos`` zero.
+    """
+    p = wp.vec3(0.0)
+    if s.gtype == GeomType.HFIELD:
+      p = prism_support(s.rot, s.size[0], d)
+    else:
+      p = s.pos + s.rot @ support_local(s.gtype, s.size, s.mesh, ms, wp.transpose(s.rot) @ d)
+    if s.inflate > 0.0:
+      p = p + s.inflate * wp.normalize(d)
+    return p
+
+  return SimpleNamespace(mesh_support_index=mesh_support_index, support_local=support_local,
+                         support_world=support_world)
+
+
+# the support functions of the queries that need the exact support vertex whatever the model's
+# mode: the tie counts (count_supports, multicontact's) flood from it
+REFINED = support_funcs(SUPPORT_REFINED)
 
 
 @wp.func
@@ -239,7 +268,7 @@ def count_supports(gtype: int, size: wp.vec3, mesh: int, ms: MeshSupport, d: wp.
         n *= 2
     return n
   if gtype == GeomType.MESH:
-    best = mesh_support_index(ms, mesh, dn, SUPPORT_REFINED)
+    best = REFINED.mesh_support_index(ms, mesh, dn)
     top = wp.dot(hull_point(ms, mesh, best), dn)
     extent = wp.length(hull_point(ms, mesh, best) - ms.hull_center[mesh])
     tol = rtol * wp.max(extent, 1.0e-12)

@@ -7,16 +7,31 @@ from mujoco_warp._src.types import GeomType
 # negated, a maximum) and the sentinel of an empty answer
 FAR = 1.0e30
 
-# support_mode as passed to kernels
+# support_mode as the kernel factories take it: fixed when a kernel is generated, not a kernel input
 SUPPORT_FIELD = 0
 SUPPORT_REFINED = 1
 SUPPORT_EXACT = 2
 SUPPORT_MODE_ID = {"field": SUPPORT_FIELD, "refined": SUPPORT_REFINED, "exact": SUPPORT_EXACT}
+SUPPORT_MODE_NAME = {i: name for name, i in SUPPORT_MODE_ID.items()}
 
 # convex geom types: the plugin's own narrow phase (MPR or analytic), also against heightfields
 CONVEX_TYPES = (GeomType.SPHERE, GeomType.CAPSULE, GeomType.ELLIPSOID, GeomType.CYLINDER, GeomType.BOX, GeomType.MESH)
 # geom types whose pairs go to stock MuJoCo Warp
 STOCK_TYPES = (GeomType.SDF,)
+
+
+def mode_module(name: str, mode: int) -> str:
+  """The Warp module that module ``name``'s kernels for support mode ``mode`` are built in, with
+  ``name``'s module options (enable_backward, fuse_fp).
+
+  One module a mode: a model compiles only the kernels of its own mode, as one module per stage
+  as before, and a second mode in the same process adds its own modules instead of rebuilding the
+  first's with both. Call it once a mode (from an lru_cache'd kernel factory): setting the
+  options marks the module modified.
+  """
+  module = f"{name}.{SUPPORT_MODE_NAME[mode]}"
+  wp.set_module_options(dict(wp.get_module_options(name)), module=module)
+  return module
 
 
 @wp.struct

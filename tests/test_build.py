@@ -19,28 +19,34 @@ from warp._src.context import ModuleBuilder
 
 import mjx_supportfield
 from mjx_supportfield import broadphase
+from mjx_supportfield import deep_pairs
 from mjx_supportfield import heightfield
+from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
 from mjx_supportfield import nonconvex
 from mjx_supportfield import routing
+from mjx_supportfield.types import SUPPORT_EXACT
+from mjx_supportfield.types import SUPPORT_FIELD
+from mjx_supportfield.types import SUPPORT_REFINED
 
 
 def _call_sites(kernel, func: str) -> int:
   module = kernel.module
   source = ModuleBuilder(module, module.options, target="cuda").codegen("cuda")
   # a call is the name at the start of a statement or after "= " (a tuple result comes back
-  # through output arguments); definitions start with "static"
-  return len(re.findall(rf"(?:^|= )\s*{func}_\d+\(", source, flags=re.MULTILINE))
+  # through output arguments); definitions start with "static". A function a mode factory built
+  # is named after the factory too (<factory>__locals__<func>_<n>)
+  return len(re.findall(rf"(?:^|= )\s*(?:\w+__locals__)?{func}_\d+\(", source, flags=re.MULTILINE))
 
 
 @pytest.mark.parametrize(
   "kernel, func, sites",
   [
-    (heightfield.hfield_mpr, "mpr_refined", 1),
-    (heightfield.hfield_mpr, "_job_mpr", 2),
-    (heightfield.hfield_jobs, "_cell_jobs", 2),
-    (nonconvex.nonconvex_narrowphase, "_point", 1),
-    (nonconvex.nonconvex_narrowphase, "_segment_min", 1),
+    (heightfield.stage_kernels(SUPPORT_REFINED).mpr, "mpr_refined", 1),
+    (heightfield.stage_kernels(SUPPORT_REFINED).mpr, "_job_mpr", 2),
+    (heightfield.stage_kernels(SUPPORT_REFINED).jobs, "_cell_jobs", 2),
+    (nonconvex.nonconvex_narrowphase(SUPPORT_REFINED), "_point", 1),
+    (nonconvex.nonconvex_narrowphase(SUPPORT_REFINED), "_segment_min", 1),
   ],
 )
 def test_call_sites(kernel, func, sites):
@@ -49,7 +55,8 @@ def test_call_sites(kernel, func, sites):
 
 
 def _package_kernels() -> list:
-  """Every kernel of the package: the module-level ones, and each factory's for one key."""
+  """Every kernel of the package: the module-level ones, and each factory's for one key (the
+  support-mode factories' for the default mode)."""
   kernels = []
   for info in pkgutil.iter_modules(mjx_supportfield.__path__):
     if info.name != "__main__":
@@ -60,9 +67,14 @@ def _package_kernels() -> list:
     broadphase.sweep_kernel(pair_test_key, 0),
     broadphase.listed_pairs_kernel(pair_test_key, True),
     narrowphase.analytic_kernel(routing.ANALYTIC_PAIRS[:1]),
-    narrowphase.convex_kernel(False),
-    narrowphase.convex_kernel(True),
+    narrowphase.convex_kernel(False, SUPPORT_REFINED),
+    narrowphase.convex_kernel(True, SUPPORT_REFINED),
+    narrowphase.sift_mpr_pairs(SUPPORT_REFINED),
+    deep_pairs.deep_pair_kernel(SUPPORT_REFINED),
+    nonconvex.nonconvex_narrowphase(SUPPORT_REFINED),
   ]
+  kernels += list(vars(multicontact_pass.pass_kernels(SUPPORT_REFINED)).values())
+  kernels += list(vars(heightfield.stage_kernels(SUPPORT_REFINED)).values())
   return kernels
 
 
@@ -75,3 +87,20 @@ def test_no_kernel_builds_an_adjoint():
   assert len(kernels) > 30
   with_adjoint = [k.key for k in kernels if (k.module.options | k.options)["enable_backward"]]
   assert not with_adjoint
+
+
+def test_support_mode_is_fixed_at_code_generation():
+  """Options.support_mode picks the kernels (factories keyed on it), not a kernel input: no kernel
+  takes it, each mode's kernels sit in their own modules with their stage's options, and a
+  mode's code holds only its own support query (field mode never climbs the hull graph, exact
+  mode never reads the field)."""
+  kernels = _package_kernels()
+  assert not [k.key for k in kernels if "support_mode" in k.adj.arg_types]
+  field = heightfield.stage_kernels(SUPPORT_FIELD).mpr
+  refined = heightfield.stage_kernels(SUPPORT_REFINED).mpr
+  assert field.module is not refined.module
+  assert not field.module.options["fuse_fp"] and not field.module.options["enable_backward"]
+  wp.init()
+  for mode, present, absent in ((SUPPORT_FIELD, "field_lookup", "hill_climb"), (SUPPORT_EXACT, "hull_scan", "field_lookup")):
+    assert _call_sites(narrowphase.sift_mpr_pairs(mode), present) > 0
+    assert _call_sites(narrowphase.sift_mpr_pairs(mode), absent) == 0

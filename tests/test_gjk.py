@@ -27,9 +27,8 @@ from mjx_supportfield.compare import match
 from mjx_supportfield.compare import mujoco_contacts
 from mjx_supportfield.compare import sample_states
 from mjx_supportfield.compare import warp_contacts
-from mjx_supportfield.mpr import apart_along_centres
 from mjx_supportfield.mpr import BEHIND
-from mjx_supportfield.mpr import mpr_refined
+from mjx_supportfield.mpr import mpr_funcs
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
@@ -37,6 +36,8 @@ from mjx_supportfield.types import Shape
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
 wp.set_module_options({"enable_backward": False})
 
+_GJK = gjk.gjk_funcs(SUPPORT_REFINED)
+_MPR = mpr_funcs(SUPPORT_REFINED)
 SCALES = (1e-3, 1.0, 10.0)
 TOL = 1e-6
 ITERATIONS = 50
@@ -293,22 +294,22 @@ def _evaluate(ms: MeshSupport, sa: wp.array(dtype=Shape), sb: wp.array(dtype=Sha
   i = wp.tid()
   a = sa[i]
   b = sb[i]
-  g = gjk.gjk_distance(a, b, ms, SUPPORT_REFINED, scale[i], TOL, iterations)
+  g = _GJK.gjk_distance(a, b, ms, scale[i], TOL, iterations)
   out[i, SEP] = float(g.separated)
   out[i, DIST] = g.dist
   _put(out, i, GNORMAL, g.normal)
   _put(out, i, PA, g.pa)
   _put(out, i, PB, g.pb)
-  r = gjk.gjk_epa(a, b, ms, SUPPORT_REFINED, scale[i], TOL, iterations)
+  r = _GJK.gjk_epa(a, b, ms, scale[i], TOL, iterations)
   out[i, HIT] = float(r.hit)
   out[i, DEPTH] = r.depth
   _put(out, i, NORMAL, r.normal)
   _put(out, i, POS, r.pos)
-  m = mpr_refined(a, b, ms, SUPPORT_REFINED, scale[i], TOL, iterations, 4, BEHIND)
+  m = _MPR.mpr_refined(a, b, ms, scale[i], TOL, iterations, 4, BEHIND)
   out[i, MHIT] = float(m.hit)
   out[i, MDEPTH] = m.depth
   _put(out, i, MNORMAL, m.normal)
-  out[i, APART] = float(apart_along_centres(a, b, ms, SUPPORT_REFINED, scale[i]))
+  out[i, APART] = float(_MPR.apart_along_centres(a, b, ms, scale[i]))
 
 
 def _seed(*parts):

@@ -16,10 +16,12 @@ from mjx_supportfield import multicontact
 from mjx_supportfield import multicontact_pass
 from mjx_supportfield import narrowphase
 from mjx_supportfield.mpr import BEHIND
-from mjx_supportfield.mpr import behind_origin
-from mjx_supportfield.mpr import mpr
+from mjx_supportfield.mpr import mpr_funcs
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
+
+_TILTS = multicontact.tilt_funcs(SUPPORT_REFINED)
+_MPR = mpr_funcs(SUPPORT_REFINED)
 
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
 wp.set_module_options({"enable_backward": False})
@@ -315,11 +317,11 @@ def _both_tilts(
   a, b, scale, res, rot = multicontact_pass._queued_tilt(geom_type, geom_dataid, geom_size, geom_rbound, geom_margin, geom_gap,
                                                    pair_margin, pair_gap, geom_xpos, geom_xmat, ms, eps, pair, pairid,
                                                    pair_worldid, patch_pair, patch_result, patch_pos, i, j)
-  closed[i, j] = multicontact.tilt_closed_form(a, b, ms, SUPPORT_REFINED, res, scale, rot)
+  closed[i, j] = _TILTS.tilt_closed_form(a, b, ms, res, scale, rot)
   # the reference: the tilted MPR run to convergence (tilt_mpr stops at TILT_ITERATIONS)
   tilted = multicontact._tilted(a, res.pos, rot)
-  q0 = behind_origin(tilted, b, ms, SUPPORT_REFINED, res.normal, res.depth, scale, BEHIND)
-  r = mpr(tilted, b, ms, SUPPORT_REFINED, q0, scale, 1.0e-7, 500)
+  q0 = _MPR.behind_origin(tilted, b, ms, res.normal, res.depth, scale, BEHIND)
+  r = _MPR.mpr(tilted, b, ms, q0, scale, 1.0e-7, 500)
   by_mpr[i, j] = wp.vec4(0.0, 0.0, 0.0, multicontact.MISSED)
   if r.hit != 0:
     by_mpr[i, j] = multicontact._mapped_back(res, rot, r.pos + 0.5 * r.depth * r.normal, r.pos - 0.5 * r.depth * r.normal)

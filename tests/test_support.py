@@ -1,5 +1,7 @@
 """Support functions: closed forms of the primitives, the support field of convex meshes."""
 
+import functools
+
 import mujoco
 import mujoco_warp as mjw
 import numpy as np
@@ -19,33 +21,37 @@ wp.set_module_options({"enable_backward": False})
 NRANDOM = 3000
 
 
-@wp.kernel
-def _support_local_kernel(
-  gtype: int,
-  size: wp.vec3,
-  mesh: int,
-  ms: MeshSupport,
-  mode: int,
-  dirs: wp.array(dtype=wp.vec3),
-  out: wp.array(dtype=wp.vec3),
-):
-  i = wp.tid()
-  out[i] = support.support_local(gtype, size, mesh, ms, dirs[i], mode)
+@functools.lru_cache(maxsize=None)
+def _support_kernels(mode: int):
+  """The test kernels on the support functions of one support mode (support.support_funcs)."""
+  funcs = support.support_funcs(mode)
 
+  @wp.kernel
+  def support_local_kernel(
+    gtype: int,
+    size: wp.vec3,
+    mesh: int,
+    ms: MeshSupport,
+    dirs: wp.array(dtype=wp.vec3),
+    out: wp.array(dtype=wp.vec3),
+  ):
+    i = wp.tid()
+    out[i] = funcs.support_local(gtype, size, mesh, ms, dirs[i])
 
-@wp.kernel
-def _mesh_index_kernel(
-  ms: MeshSupport,
-  mesh: int,
-  mode: int,
-  dirs: wp.array(dtype=wp.vec3),
-  idx_out: wp.array(dtype=int),
-  point_out: wp.array(dtype=wp.vec3),
-):
-  i = wp.tid()
-  k = support.mesh_support_index(ms, mesh, dirs[i], mode)
-  idx_out[i] = k
-  point_out[i] = support.hull_point(ms, mesh, k)
+  @wp.kernel
+  def mesh_index_kernel(
+    ms: MeshSupport,
+    mesh: int,
+    dirs: wp.array(dtype=wp.vec3),
+    idx_out: wp.array(dtype=int),
+    point_out: wp.array(dtype=wp.vec3),
+  ):
+    i = wp.tid()
+    k = funcs.mesh_support_index(ms, mesh, dirs[i])
+    idx_out[i] = k
+    point_out[i] = support.hull_point(ms, mesh, k)
+
+  return support_local_kernel, mesh_index_kernel
 
 
 def directions(rng, n=NRANDOM):
@@ -99,9 +105,9 @@ def mesh_supports(pile):
 def run_support_local(ms, gtype, size, dirs, mesh=-1, mode="refined"):
   out = wp.zeros(len(dirs), dtype=wp.vec3)
   wp.launch(
-    _support_local_kernel,
+    _support_kernels(SUPPORT_MODE_ID[mode])[0],
     dim=len(dirs),
-    inputs=[int(gtype), wp.vec3(*size), mesh, ms, SUPPORT_MODE_ID[mode], wp.array(dirs, dtype=wp.vec3)],
+    inputs=[int(gtype), wp.vec3(*size), mesh, ms, wp.array(dirs, dtype=wp.vec3)],
     outputs=[out],
   )
   return out.numpy().astype(np.float64)
@@ -235,7 +241,7 @@ def run_mesh_index(ms, mesh, mode, dirs):
   n = len(dirs)
   idx = wp.zeros(n, dtype=int)
   pts = wp.zeros(n, dtype=wp.vec3)
-  wp.launch(_mesh_index_kernel, dim=n, inputs=[ms, mesh, SUPPORT_MODE_ID[mode], wp.array(dirs, dtype=wp.vec3)],
+  wp.launch(_support_kernels(SUPPORT_MODE_ID[mode])[1], dim=n, inputs=[ms, mesh, wp.array(dirs, dtype=wp.vec3)],
             outputs=[idx, pts])
   return idx.numpy(), pts.numpy().astype(np.float64)
 

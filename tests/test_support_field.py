@@ -1,6 +1,8 @@
 """Support field quality: exactness of the refined/exact modes on random hulls, the field-mode
 error bound, poles and seam, tie counts, memory, and per-world mesh assignment."""
 
+import functools
+
 import numpy as np
 import pytest
 import warp as wp
@@ -75,10 +77,17 @@ def directions():
   return np.concatenate([special, d])
 
 
-@wp.kernel
-def _query(ms: MeshSupport, mesh: int, mode: int, dirs: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
-  i = wp.tid()
-  out[i] = support.hull_point(ms, mesh, support.mesh_support_index(ms, mesh, dirs[i], mode))
+@functools.lru_cache(maxsize=None)
+def _query(mode: int):
+  """The support-point test kernel of one support mode (support.support_funcs)."""
+  mesh_support_index = support.support_funcs(mode).mesh_support_index
+
+  @wp.kernel
+  def query(ms: MeshSupport, mesh: int, dirs: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = support.hull_point(ms, mesh, mesh_support_index(ms, mesh, dirs[i]))
+
+  return query
 
 
 @wp.kernel
@@ -95,7 +104,7 @@ def _box_ties(size: wp.vec3, rtol: float, dirs: wp.array(dtype=wp.vec3), out: wp
 
 def _run(ms, mesh, mode, dirs):
   out = wp.zeros(len(dirs), dtype=wp.vec3)
-  wp.launch(_query, dim=len(dirs), inputs=[ms, mesh, SUPPORT_MODE_ID[mode], wp.array(dirs.astype(np.float32), dtype=wp.vec3), out])
+  wp.launch(_query(SUPPORT_MODE_ID[mode]), dim=len(dirs), inputs=[ms, mesh, wp.array(dirs.astype(np.float32), dtype=wp.vec3), out])
   return out.numpy().astype(np.float64)
 
 

@@ -229,7 +229,6 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       wp.atomic_add(hfield_count_out, kind + 1, tp.job_count - tp.nprism)
       hfield_pair_out[slot] = tp
 
-
   @wp.kernel(module=module)
   def hfield_kind_start(
     # In:
@@ -242,7 +241,6 @@ def stage_kernels(mode: int) -> SimpleNamespace:
     for kind in range(NKIND):
       kind_next_out[kind] = start
       start += hfield_count_in[COUNT_KIND + kind]
-
 
   @wp.kernel(module=module)
   def hfield_order(
@@ -273,7 +271,6 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         else:
           order_out[point] = j
           point += 1
-
 
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
   def hfield_mpr(
@@ -320,7 +317,6 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       answer_out[j] = answer
       normal_out[j] = normal
 
-
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
   def hfield_ccd(
     # Model:
@@ -366,7 +362,6 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         answer, normal = _job_ccd(hfield, bgeom, geom_type[geoms[1]], tp, job[1], ccd_in, tid, worldid, overflow_out)
         answer_out[j] = answer
         normal_out[j] = normal
-
 
   @wp.kernel(module=module)
   def hfield_contacts(

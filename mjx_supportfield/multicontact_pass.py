@@ -181,7 +181,6 @@ def pass_kernels(mode: int) -> SimpleNamespace:
         face_queue[slot] = i
         face_faces[slot] = faces
 
-
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
   def manifold_kernel(
     # Model:
@@ -299,7 +298,6 @@ def pass_kernels(mode: int) -> SimpleNamespace:
           contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
         )
 
-
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
   def tilt_kernel(
     # Model:
@@ -351,7 +349,6 @@ def pass_kernels(mode: int) -> SimpleNamespace:
       if answer[3] == UNKNOWN:
         tilt_queue[wp.atomic_add(tilt_count, 0, 1)] = j
 
-
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
   def tilt_mpr_kernel(
     # Model:
@@ -397,7 +394,6 @@ def pass_kernels(mode: int) -> SimpleNamespace:
                                            j % nattempt)
       tilt_result[q, j % nattempt] = tilt_mpr(a, b, ms, res, scale, mpr_options.tolerance,
                                               mpr_options.iterations, rot)
-
 
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
   def patch_kernel(

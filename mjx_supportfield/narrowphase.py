@@ -392,7 +392,6 @@ def sift_mpr_pairs(mode: int) -> wp.Kernel:
                              wp.max(margin + gap, 0.0), geoms, worldid)
     return apart_along_centres(a, b, ms, scale)
 
-
   @wp.kernel(module=mode_module(__name__, mode))
   def sift_mpr_pairs(
     # Model:

@@ -49,8 +49,9 @@ is, and a geom lying on rough terrain rests on all of them, not on the few that 
 more than MAX_CELLS cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD``
 (with a printed warning unless ``m.opt.warn_overflow`` clears it).
 
-This module owns the heightfield stage's kernels, its install-time check (``check_model``), its
-per-Data buffers (``Buffers``, ``make_buffers``) and its host entry, ``launch``.
+This module owns the heightfield stage's kernels (built for one support mode by ``stage_kernels``),
+its install-time check (``check_model``), its per-Data buffers (``Buffers``, ``make_buffers``) and
+its host entry, ``launch``.
 Each pair's window of cells and its jobs (device functions) are hfield_window.py's; the cells'
 geometry (vertices, prisms, features, the keep-or-drop tests) is hfield_cells.py's.
 """

@@ -4,8 +4,10 @@ Each convex geom over a heightfield gets a window of grid cells under its extent
 (``TerrainPair``, ``_window``); each cell gives jobs: its two triangle prisms and the terrain
 features inside the geom (``_cell_jobs``), run by MPR (``_job_mpr``) or, for boxes and meshes,
 MuJoCo Warp's GJK/EPA on the prism (``_job_ccd``, rows of EPA memory in ``PrismCcd``); the plane
-pass (``_plane_pass``) gives the geom's points under each triangle's plane. heightfield.py's
-kernels call these and own the launches and buffers; hfield_cells.py has the cells' geometry.
+pass (``_plane_pass``) gives the geom's points under each triangle's plane. The functions that
+ask support queries are built for one support mode by ``window_funcs``. heightfield.py's kernels
+call these and own the launches and buffers; hfield_cells.py has the cells' geometry and the
+``Heightfield`` struct they read a heightfield through.
 """
 
 import functools

@@ -4,9 +4,9 @@ other contacts, after the convex narrow phase.
 Face pairs first (face_pair_kernel): a pair touching face on feature along its normal is
 clipped (manifold_kernel, faceclip.py's device functions); the rest are tilted (tilt_kernel in
 closed form, tilt_mpr_kernel by MPR, multicontact.py's device functions) and patch_kernel
-writes each tilted pair's contacts. This module owns those kernels and their host entry,
-``launch_multicontact``; their queues are the narrow phase's per-Data buffers
-(``narrowphase.Buffers``), as the MPR kernel fills them.
+writes each tilted pair's contacts. This module owns those kernels (built for one support mode
+by ``pass_kernels``) and their host entry, ``launch_multicontact``; their queues are the narrow
+phase's per-Data buffers (``narrowphase.Buffers``), as the MPR kernel fills them.
 """
 
 import functools

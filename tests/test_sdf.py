@@ -9,7 +9,10 @@ from conftest import load
 import mujoco
 import mjx_supportfield as sf
 from mjx_supportfield import sdf as sdfmod
+from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
+
+_SDF = sdfmod.sdf_funcs(SUPPORT_REFINED)
 
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
 wp.set_module_options({"enable_backward": False})
@@ -81,7 +84,7 @@ def test_trigger_is_the_overlap_ratio():
 
 @wp.kernel
 def _contact(ms: MeshSupport, sdf: sdfmod.MeshSdf, a: sf.types.Shape, b: sf.types.Shape, out: wp.array(dtype=wp.vec4)):
-  c = sdfmod.sdf_contact(a, b, ms, sdf, 1, 1.0e-4)
+  c = _SDF.sdf_contact(a, b, ms, sdf, 1.0e-4)
   out[0] = wp.vec4(c.depth, c.normal[0], c.normal[1], c.normal[2])
 
 

@@ -13,6 +13,7 @@ from mjx_supportfield import support
 from mjx_supportfield import support_field
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import mode_module
 from conftest import load_mjmodel
 
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
@@ -23,10 +24,12 @@ NRANDOM = 3000
 
 @functools.lru_cache(maxsize=None)
 def _support_kernels(mode: int):
-  """The test kernels on the support functions of one support mode (support.support_funcs)."""
+  """The test kernels on the support functions of one support mode (support.support_funcs), in a
+  module of that mode: another mode's test adds a module instead of rebuilding this one."""
   funcs = support.support_funcs(mode)
+  module = mode_module(__name__, mode)
 
-  @wp.kernel
+  @wp.kernel(module=module)
   def support_local_kernel(
     gtype: int,
     size: wp.vec3,
@@ -38,7 +41,7 @@ def _support_kernels(mode: int):
     i = wp.tid()
     out[i] = funcs.support_local(gtype, size, mesh, ms, dirs[i])
 
-  @wp.kernel
+  @wp.kernel(module=module)
   def mesh_index_kernel(
     ms: MeshSupport,
     mesh: int,

@@ -15,6 +15,7 @@ from mjx_supportfield import support
 from mjx_supportfield import support_field
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import mode_module
 
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
 wp.set_module_options({"enable_backward": False})
@@ -79,10 +80,11 @@ def directions():
 
 @functools.lru_cache(maxsize=None)
 def _query(mode: int):
-  """The support-point test kernel of one support mode (support.support_funcs)."""
+  """The support-point test kernel of one support mode (support.support_funcs), in a module of
+  that mode: another mode's test adds a module instead of rebuilding this one."""
   mesh_support_index = support.support_funcs(mode).mesh_support_index
 
-  @wp.kernel
+  @wp.kernel(module=mode_module(__name__, mode))
   def query(ms: MeshSupport, mesh: int, dirs: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
     i = wp.tid()
     out[i] = support.hull_point(ms, mesh, mesh_support_index(ms, mesh, dirs[i]))

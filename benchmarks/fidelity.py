@@ -25,6 +25,11 @@ For each scene:
    largest distance), worlds with a non-finite qpos, free bodies whose centre of mass went inside
    a static box or under the floor or terrain (fall-through), and a figure of the task (can
    lifted, objects in the bin, ...).
+5. The rollouts' penetration apart from their trajectories: each world's deepest and their median
+   over worlds (the deepest of all is one rare impact's: an object toppled or pushed off the table
+   in one world), and each implementation's deepest state replayed by MuJoCo C from the rollout's
+   own states (qpos, qvel) ``REPLAY_STEPS`` before it. Where the replay sinks as deep, the depth
+   came from how hard the bodies met, not from the implementation's contacts.
 
 Writes a JSON (default ``benchmarks/results/<date>-cpu-fidelity.json``) and prints markdown
 tables (docs/fidelity.md holds the committed run's).
@@ -66,6 +71,7 @@ from mjx_supportfield.real_scenes import free_bodies  # noqa: E402
 from mjx_supportfield.real_scenes import initial_data  # noqa: E402
 from mjx_supportfield.real_scenes import jittered  # noqa: E402
 from mjx_supportfield.real_scenes import load  # noqa: E402
+from mjx_supportfield.real_scenes import replay_mujoco  # noqa: E402
 from mjx_supportfield.real_scenes import rollout_mujoco  # noqa: E402
 from mjx_supportfield.real_scenes import squeeze  # noqa: E402
 from mjx_supportfield.real_scenes import static_geoms  # noqa: E402
@@ -76,6 +82,12 @@ if hasattr(wp.config, "log_level"):
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RECORD_EVERY = 5  # steps between the rollout states judged by MuJoCo C's collision
+# the deepest judged state is replayed by MuJoCo C from the implementation's own recorded states
+# these many steps before it, to REPLAY_STEPS[-1] after: long enough for the approach to the
+# impact, short enough that the replay's trajectory has not yet diverged from the rollout's. Two
+# starts, because a body tumbling into another diverges within a few steps: a replay from 10 steps
+# before can miss an impact that the one from 5 steps before meets as hard
+REPLAY_STEPS = (RECORD_EVERY, 2 * RECORD_EVERY)
 IMPLS = {"plugin": Options(), "plugin_gjk": Options(narrowphase="gjk"), "stock": None}
 
 
@@ -86,18 +98,19 @@ IMPLS = {"plugin": Options(), "plugin_gjk": Options(narrowphase="gjk"), "stock":
 def rollout_warp(scene: Scene, mjm: mujoco.MjModel, opts: Optional[Options], qpos0: np.ndarray, nstep: int,
                  nconmax: int, njmax: int) -> dict:
   """Worlds rolled out through mjw.step (plugin installed unless opts is None) from the rows of
-  qpos0 (nworld, nq), zero velocity; qpos every RECORD_EVERY steps and the last."""
+  qpos0 (nworld, nq), zero velocity; qpos and qvel every RECORD_EVERY steps and the last."""
   nworld = len(qpos0)
   m = mjw.put_model(mjm)
   if opts is not None:
     mjx_supportfield.install(mjm, m, opts)
   d = mjw.put_data(mjm, initial_data(mjm), nworld=nworld, nconmax=nconmax, njmax=njmax)
   wp.copy(d.qpos, wp.array(qpos0.astype(np.float32), dtype=float))
-  records, overflow, max_nacon = {}, 0, 0
+  records, velocities, overflow, max_nacon = {}, {}, 0, 0
   start = time.time()
   for step in range(nstep + 1):
     if step % RECORD_EVERY == 0 or step == nstep:
       records[step] = d.qpos.numpy().astype(np.float64)
+      velocities[step] = d.qvel.numpy().astype(np.float64)
     if step == nstep:
       break
     ctrl = control(scene, mjm, step)
@@ -111,8 +124,8 @@ def rollout_warp(scene: Scene, mjm: mujoco.MjModel, opts: Optional[Options], qpo
   if opts is not None:
     mjx_supportfield.uninstall(m)
   flags = [f.name for f in mjw.OverflowType if f.value and f.value & overflow and f.name != "ALL"]
-  return {"records": records, "seconds": time.time() - start, "max_nacon": max_nacon, "naconmax": d.naconmax,
-          "overflow": flags}
+  return {"records": records, "velocities": velocities, "seconds": time.time() - start, "max_nacon": max_nacon,
+          "naconmax": d.naconmax, "overflow": flags}
 
 
 def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_final: np.ndarray) -> dict:
@@ -127,6 +140,7 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
   nan_worlds = set()
   deepest, deepest_at = 0.0, None
   per_state = []
+  per_world = np.zeros(nworld)
   fell = set()
   for step in steps:
     for w in range(nworld):
@@ -136,6 +150,7 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
         continue
       depth, pair = deepest_penetration(mjm, mjd, q)
       per_state.append(depth)
+      per_world[w] = max(per_world[w], depth)
       if depth > deepest:
         deepest, deepest_at = depth, {"step": step, "world": w, "pair": pair}
       fell |= {(w, mjm.body(b).name) for b in fallen_through(mjm, mjd, static)}
@@ -153,6 +168,8 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
   return {
     "max_penetration": deepest,
     "max_penetration_at": deepest_at,
+    "max_penetration_per_world": per_world.tolist(),
+    "max_penetration_median_world": float(np.median(per_world)),
     "mean_deepest_penetration": float(np.mean(per_state)) if per_state else 0.0,
     "nan_worlds": len(nan_worlds),
     "fell_through": sorted(f"world {w}: {b}" for w, b in fell),
@@ -160,6 +177,28 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
     "final_position_error_max": float(np.max(errors)) if errors else None,
     "outcome": outcomes,
   }
+
+
+def replay_deepest(scene: Scene, mjm: mujoco.MjModel, run: dict, judged: dict, nstep: int) -> list[dict]:
+  """MuJoCo C replaying an implementation's deepest judged state: from the rollout's recorded
+  states (qpos and qvel) REPLAY_STEPS before it to REPLAY_STEPS[-1] after, judged every step; one
+  entry a start. ``ratio`` is the rollout's deepest over the replay's: near 1 (or below) when
+  MuJoCo C's contacts, put in the place of the implementation's for those steps, let the bodies
+  sink as deep; well above 1 when the implementation's contacts resisted the impact less. Empty
+  without a deepest state."""
+  at = judged["max_penetration_at"]
+  if at is None:
+    return []
+  out = []
+  for before in REPLAY_STEPS:
+    start = max(0, (at["step"] - before) // RECORD_EVERY * RECORD_EVERY)
+    steps = min(nstep, at["step"] + REPLAY_STEPS[-1]) - start
+    w = at["world"]
+    rep = replay_mujoco(scene, mjm, run["records"][start][w], run["velocities"][start][w], start, steps)
+    rep["from_step"] = start
+    rep["ratio"] = judged["max_penetration"] / rep["max_penetration"] if rep["max_penetration"] > 0.0 else None
+    out.append(rep)
+  return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,6 +256,7 @@ def run_scene(name: str, nstates: int, nworld: int, rollout: bool) -> dict:
     judged = judge_rollout(scene, mjm, run["records"], finals)
     judged.update({"seconds": run["seconds"], "max_nacon": run["max_nacon"], "naconmax": run["naconmax"],
                    "overflow": run["overflow"]})
+    judged["deepest_replayed"] = replay_deepest(scene, mjm, run, judged, nstep)
     out["rollouts"][impl] = judged
     _log(f"{name}: {impl} rollout done in {time.time() - t:.0f} s: max penetration "
          f"{judged['max_penetration'] * 1e3:.2f} mm, final position error median "
@@ -303,7 +343,37 @@ def tables(results: dict) -> str:
       fell = " / ".join(str(len(ro[i]["fell_through"])) for i in ["mujoco"] + impls)
       task = " / ".join(_task(ro[i]["outcome"]) for i in ["mujoco"] + impls)
       lines.append(f"| {name} | {pen} | {err} | {nan} | {fell} | {task} |")
+    lines += _impact_rows(results, impls)
   return "\n".join(lines)
+
+
+def _replayed(judged: dict) -> str:
+  """An implementation's deepest penetration and MuJoCo C's replay of it, short."""
+  reps = judged.get("deepest_replayed")
+  if not reps:
+    return "–"
+  at = judged["max_penetration_at"]
+  return (f"{_mm(judged['max_penetration'])} → " + ", ".join(_mm(r["max_penetration"]) for r in reps)
+          + f" (w{at['world']}, step {at['step']}, {at['pair']})")
+
+
+def _impact_rows(results: dict, impls: list) -> list[str]:
+  """The rollouts' penetration apart from the trajectory: the median over worlds of each world's
+  deepest, and each implementation's deepest state replayed by MuJoCo C."""
+  lines = [
+    "",
+    "| scene | deepest per world, median over worlds mm: C / plugin / gjk / stock | deepest, and MuJoCo C's replays "
+    f"of it from {' and '.join(str(k) for k in REPLAY_STEPS)} steps before, mm: plugin / gjk / stock |",
+    "|---|---|---|",
+  ]
+  for name, r in results.items():
+    if "rollouts" not in r:
+      continue
+    ro = r["rollouts"]
+    median = " / ".join(_mm(ro[i].get("max_penetration_median_world")) for i in ["mujoco"] + impls)
+    replays = " / ".join(_replayed(ro[i]) for i in impls)
+    lines.append(f"| {name} | {median} | {replays} |")
+  return lines
 
 
 def _commit() -> str:

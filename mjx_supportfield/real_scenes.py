@@ -201,6 +201,35 @@ def rollout_mujoco(scene: Scene, mjm: mujoco.MjModel, qpos0: np.ndarray, nstep: 
   return {"qpos": qpos, "ncon": np.array(ncon), "deepest": deepest, "max_nefc": nefc}
 
 
+def replay_mujoco(scene: Scene, mjm: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, start: int,
+                  nstep: int) -> dict:
+  """MuJoCo C from another implementation's state (qpos, qvel at step ``start``) for ``nstep``
+  steps under the scene's controls, every state judged by deepest_penetration: the deepest (m)
+  and the step it was reached at.
+
+  A rollout's deepest penetration mixes two things: how hard the bodies met (the trajectory:
+  where a sweep or a drop sends them, which diverges between implementations within a second)
+  and how the contacts resisted the impact. Replaying the last few steps before an implementation's
+  deepest state with MuJoCo C keeps the first and puts MuJoCo C's contacts in place of the
+  implementation's, so the two depths differ only by the contacts' doing over those steps."""
+  mjd = initial_data(mjm)
+  mjd.qpos[:] = qpos
+  mjd.qvel[:] = qvel
+  judge = mujoco.MjData(mjm)
+  deepest, deepest_at, pair_at = 0.0, start, ""
+  for step in range(start, start + nstep + 1):
+    depth, pair = deepest_penetration(mjm, judge, mjd.qpos)
+    if depth > deepest:
+      deepest, deepest_at, pair_at = depth, step, pair
+    if step == start + nstep:
+      break
+    ctrl = control(scene, mjm, step)
+    if ctrl is not None:
+      mjd.ctrl[:] = ctrl
+    mujoco.mj_step(mjm, mjd)
+  return {"max_penetration": deepest, "step": deepest_at, "pair": pair_at}
+
+
 def squeeze(mjm: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
   """qpos with each free body moved down along gravity, from SQUEEZE_MIN (the lowest body) to
   SQUEEZE_MAX (the highest), in proportion to its height: bodies resting on static geoms sink

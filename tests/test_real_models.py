@@ -88,6 +88,32 @@ def test_squeeze_deepens_contacts():
   assert after > before + 0.5e-3
 
 
+def test_replay_repeats_mujoco_own_rollout():
+  """replay_mujoco from a MuJoCo C rollout's own state (qpos, qvel) under the scene's controls runs
+  that rollout again: the same deepest penetration, at the same step. The window is the grasp's
+  fingers closing on the can (0.5-0.8 s), where the controls move the fingers: a replay that held
+  the controls still or dropped the velocities would press less."""
+  name = "gripper_grasp"
+  scene = real_scenes.SCENES[name]
+  mjm = real_scenes.load(name)
+  start, nstep = 300, 60
+  mjd = real_scenes.initial_data(mjm)
+  judge = mujoco.MjData(mjm)
+  depths = []
+  for step in range(start + nstep + 1):
+    if step == start:
+      qpos, qvel = mjd.qpos.copy(), mjd.qvel.copy()
+    if step >= start:
+      depths.append(real_scenes.deepest_penetration(mjm, judge, mjd.qpos)[0])
+    mjd.ctrl[:] = real_scenes.control(scene, mjm, step)
+    mujoco.mj_step(mjm, mjd)
+  replay = real_scenes.replay_mujoco(scene, mjm, qpos, qvel, start, nstep)
+  assert max(depths) > 0.3e-3  # the fingers press into the can
+  # the replay's solver starts cold (no warm start), so the depths agree to its tolerance only
+  np.testing.assert_allclose(replay["max_penetration"], max(depths), rtol=1e-3)
+  assert replay["step"] == start + int(np.argmax(depths))
+
+
 def test_quadruped_terrain_is_what_its_script_writes():
   spec = _terrain_script().build()
   committed = mujoco.MjModel.from_xml_path(os.path.join(REAL, "quadruped_terrain.xml"))

@@ -46,7 +46,7 @@ def import_kernel_modules():
   for use_gjk in (False, True):
     narrowphase.convex_kernel(use_gjk, mode)
   narrowphase.sift_mpr_pairs(mode)
-  deep_pairs.deep_pair_kernel(mode)
+  deep_pairs.deep_kernels(mode)
   multicontact_pass.pass_kernels(mode)
   heightfield.stage_kernels(mode)
   nonconvex.nonconvex_narrowphase(mode)

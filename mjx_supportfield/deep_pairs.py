@@ -25,8 +25,15 @@ convex kernel keeps that verdict (narrowphase.deep_verdict_holds, counted as
 at a phase of its own: MPR warm-started on a face stays on it, so only a new check finds that
 another face became the nearest.
 
-This module owns the queue (``Buffers``, ``make_buffers``), its kernel (``deep_pair_kernel``)
-and the host entry, ``launch``. A checked pair leaves as the convex kernel would have left it:
+On a GPU the check's time is its longest thread's: a few deep pairs a world, each a scan of
+hundreds of faces, leave most of the GPU idle. Each pair's face scan and edge-pair scan are dealt
+to lanes (``DEEP_LANES`` threads at most, fewer when many pairs are queued), and the lanes'
+answers merge to the earliest candidate of least overlap, the answer one thread scanning them
+all in order gives, bit for bit. The check runs as four kernels: faces (lanes), the edge-edge
+walks from the best face (a thread a pair), edge pairs (lanes), and the finish (a thread a pair).
+
+This module owns the queue and the check's scratch (``Buffers``, ``make_buffers``), its kernels
+(``deep_kernels``) and the host entry, ``launch``. A checked pair leaves as the convex kernel would have left it:
 queued for multi-contact (``narrowphase.Buffers``' patch queue, so its manifold follows the
 corrected normal) or written as one contact; its warm-start normal is corrected too.
 """
@@ -79,6 +86,13 @@ EDGE_ROUNDS = 4  # steps of the walk over edge-edge directions (_descend_edges)
 # pairs with at most this many edge pairs (a box has 3 edge directions) also try every one: two
 # support queries each
 EDGE_PAIR_BUDGET = 1024
+# a pair's scans (its faces, its edge pairs on small hulls) are dealt to up to DEEP_LANES threads
+# on a GPU, as many as LANE_THREADS threads leave to each queued pair (_lanes); one thread a pair
+# on the CPU, where threads run one after another anyway
+DEEP_LANES = 16
+LANE_THREADS = 1 << 16
+# candidate indices of B's faces follow A's (lanes merge to the earliest of equal answers)
+FACES_OF_B = 1 << 20
 
 
 @dataclasses.dataclass
@@ -89,13 +103,25 @@ class Buffers:
   pair: wp.array  # indices into the pair list
   result: wp.array  # MPR's normal (xyz) and depth (w), margin band included
   pos: wp.array  # MPR's point
+  # the check's own, a row each: the margin band, the overlap along MPR's normal, the walk's answer
+  band: wp.array
+  along: wp.array
+  walked: wp.array
+  # each lane's answer and the index of its candidate (a row's lanes side by side)
+  lane_best: wp.array
+  lane_index: wp.array
+  max_lanes: int = 0  # lanes a pair at most; 0: DEEP_LANES on a GPU, 1 on the CPU
 
 
 def make_buffers(nworld: int, capacity: int) -> Buffers:
   """The queue for ``nworld`` worlds of ``capacity`` broad-phase pairs in all."""
   rows = max(1, min(capacity, nworld * DEEP_PAIRS_PER_WORLD))
+  # rows x lanes never exceeds LANE_THREADS (_lanes), nor rows with one lane
+  lane_slots = max(rows, LANE_THREADS)
   return Buffers(count=wp.zeros(2, dtype=int), pair=wp.zeros(rows, dtype=int), result=wp.zeros(rows, dtype=wp.vec4),
-                 pos=wp.zeros(rows, dtype=wp.vec3))
+                 pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
+                 along=wp.zeros(rows, dtype=float), walked=wp.zeros(rows, dtype=wp.vec4),
+                 lane_best=wp.zeros(lane_slots, dtype=wp.vec4), lane_index=wp.zeros(lane_slots, dtype=int))
 
 
 @wp.struct
@@ -179,7 +205,8 @@ def _edge_ends(s: Shape, ms: MeshSupport) -> int:
 @functools.lru_cache(maxsize=None)
 def deep_funcs(mode: int) -> SimpleNamespace:
   """The check's device functions on the support functions of support mode ``mode``
-  (support_funcs, mpr_funcs): ``least_overlap`` and ``checked_answer``."""
+  (support_funcs, mpr_funcs), in the check's order: ``start_of``, ``face_lane``, ``walk``,
+  ``edge_lane``, ``rerun_along``."""
   support = support_funcs(mode)
   mesh_support_index = support.mesh_support_index
   support_world = support.support_world
@@ -214,25 +241,34 @@ def deep_funcs(mode: int) -> SimpleNamespace:
     return w
 
   @wp.func
-  def _face_normals(s: Shape, a: Shape, b: Shape, ms: MeshSupport, w: Witness, sign: float,
-                    best: wp.vec4) -> wp.vec4:
+  def _face_lane(s: Shape, a: Shape, b: Shape, ms: MeshSupport, w: Witness, sign: float, best: wp.vec4,
+                 index: int, base: int, lane: int, nlane: int):
     """best improved by the outward face normals (times sign: every direction points from A to B)
-    of s, A or B: a mesh's hull faces, a box's six, a cylinder's two ends. Curved sides have no
-    face: there MPR's refinement along the normal already walks to the nearest point."""
+    of s, A or B, that fall to ``lane`` of ``nlane`` (every nlane-th from the lane-th): a mesh's
+    hull faces, a box's six, a cylinder's two ends. Curved sides have no face: there MPR's
+    refinement along the normal already walks to the nearest point. Also returns the index of
+    best's direction in the sequence of all candidates (``base`` + the face's), or ``index`` when
+    none of these improved it: lanes' answers merge by it (_merge_lanes) as one lane's would."""
     if s.gtype == GeomType.MESH:
       adr = ms.plane_adr[s.mesh]
-      for f in range(ms.plane_num[s.mesh]):
+      for f in range(lane, ms.plane_num[s.mesh], nlane):
         plane = ms.plane[adr + f]
         n = s.rot @ wp.vec3(plane[0], plane[1], plane[2])
         if _hull_face_bound(s, a, b, w, sign, n, plane[3]) <= best[3] + w.slack:
-          best = _shallower(a, b, ms, sign * n, best)
+          h = overlap_along(a, b, ms, sign * n)
+          if h < best[3]:
+            best = wp.vec4(sign * n[0], sign * n[1], sign * n[2], h)
+            index = base + f
     elif s.gtype == GeomType.BOX or s.gtype == GeomType.CYLINDER:
-      first = wp.where(s.gtype == GeomType.BOX, 0, 2)
-      for c in range(first, 3):
-        axis = wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
-        best = _shallower(a, b, ms, sign * axis, best)
-        best = _shallower(a, b, ms, -sign * axis, best)
-    return best
+      first = wp.where(s.gtype == GeomType.BOX, 0, 4)  # a cylinder's faces: its axis, both ways
+      for f in range(first + lane, 6, nlane):
+        c = f // 2
+        u = wp.where(f % 2 == 0, sign, -sign) * wp.vec3(s.rot[0, c], s.rot[1, c], s.rot[2, c])
+        h = overlap_along(a, b, ms, u)
+        if h < best[3]:
+          best = wp.vec4(u[0], u[1], u[2], h)
+          index = base + f
+    return best, index
 
   @wp.func
   def _support_vertex(s: Shape, ms: MeshSupport, d: wp.vec3) -> int:
@@ -292,22 +328,31 @@ def deep_funcs(mode: int) -> SimpleNamespace:
     return best
 
   @wp.func
-  def _all_edge_crosses(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4) -> wp.vec4:
-    """best improved by the crosses of every edge of A with every edge of B (turned to the side of
-    best's direction)."""
+  def _edge_cross_lane(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4, lane: int, nlane: int):
+    """best improved by the crosses of the edges of A that fall to ``lane`` of ``nlane`` (A's box
+    directions or hull vertices, every nlane-th from the lane-th, with the edges that leave them)
+    with every edge of B, turned to the side of best's direction. Also returns the A item whose
+    crosses last improved best, -1 if none did (_merge_lanes)."""
     u = wp.vec3(best[0], best[1], best[2])
+    index = int(-1)
     if a.gtype == GeomType.BOX:
-      for k in range(3):
+      for k in range(lane, 3, nlane):
+        before = best[3]
         best = _crosses_with_edge(a, b, ms, w, wp.vec3(a.rot[0, k], a.rot[1, k], a.rot[2, k]), w.a1, u, best)
+        if best[3] < before:
+          index = k
     elif a.gtype == GeomType.MESH:
-      for v in range(ms.hull_num[a.mesh]):
+      for v in range(lane, ms.hull_num[a.mesh], nlane):
         g = ms.hull_adr[a.mesh] + v
+        before = best[3]
         for k in range(ms.nbr_num[g]):
           other = ms.nbr[ms.nbr_adr[g] + k]
           if other > v:
             ea = a.rot @ (hull_point(ms, a.mesh, other) - hull_point(ms, a.mesh, v))
             best = _crosses_with_edge(a, b, ms, w, ea, _vertex_or(a, ms, v, w.a1), u, best)
-    return best
+        if best[3] < before:
+          index = v
+    return best, index
 
   @wp.func
   def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4) -> wp.vec4:
@@ -323,34 +368,46 @@ def deep_funcs(mode: int) -> SimpleNamespace:
     return best
 
   @wp.func
-  def least_overlap(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, along: float,
-                    scale: float) -> wp.vec4:
-    """Of ``normal`` (A and B overlap ``along`` it: overlap_along), the face normals of A and B and the edge-edge directions found near the best
-    of those and near ``normal`` (all of them on small hulls, EDGE_PAIR_BUDGET), all from A to B,
-    the one along which A and B overlap least, and that overlap (xyz, w). Directions whose
-    overlap the witness points bound above the best found so far are skipped (Witness)."""
+  def start_of(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, along: float, scale: float):
+    """The check's start on a pair whose MPR normal is ``normal`` (A and B overlap ``along`` it):
+    its witness points, and ``normal`` with that overlap (xyz, w), the answer to beat."""
     w = witness(a, b, ms, normal, scale)
-    start = wp.vec4(normal[0], normal[1], normal[2], wp.where(along < FAR, along, FAR))
-    faces = _face_normals(b, a, b, ms, w, -1.0, _face_normals(a, a, b, ms, w, 1.0, start))
+    return w, wp.vec4(normal[0], normal[1], normal[2], wp.where(along < FAR, along, FAR))
+
+  @wp.func
+  def face_lane(a: Shape, b: Shape, ms: MeshSupport, w: Witness, start: wp.vec4, lane: int, nlane: int):
+    """start improved by the face normals of A, then of B, that fall to ``lane`` of ``nlane``
+    (_face_lane), with the index of its direction (-1: start's)."""
+    best, index = _face_lane(a, a, b, ms, w, 1.0, start, -1, 0, lane, nlane)
+    return _face_lane(b, a, b, ms, w, -1.0, best, index, FACES_OF_B, lane, nlane)
+
+  @wp.func
+  def walk(a: Shape, b: Shape, ms: MeshSupport, w: Witness, start: wp.vec4, faces: wp.vec4) -> wp.vec4:
+    """faces (the best of start and the face normals) improved by the edge-edge directions found
+    near it and near start's."""
     best = _descend_edges(a, b, ms, w, faces)
     if faces[3] < start[3]:  # else the walk from MPR's normal is the one just taken
       near = _descend_edges(a, b, ms, w, start)
       if near[3] < best[3]:
         best = near
-    # small hulls: every edge pair (the walk can stop short of an edge-edge direction far from
-    # where it starts)
-    if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
-      best = _all_edge_crosses(a, b, ms, w, best)
     return best
 
   @wp.func
-  def checked_answer(
-    a: Shape, b: Shape, ms: MeshSupport, res: MprResult, scale: float, mpr_options: MprSettings
+  def edge_lane(a: Shape, b: Shape, ms: MeshSupport, w: Witness, walked: wp.vec4, lane: int, nlane: int):
+    """On small hulls, walked improved by every edge pair whose edge of A falls to ``lane`` of
+    ``nlane`` (_edge_cross_lane; the walk can stop short of an edge-edge direction far from where
+    it starts), with the index of its A item (-1: walked's)."""
+    if _edge_ends(a, ms) * _edge_ends(b, ms) <= 4 * EDGE_PAIR_BUDGET:
+      return _edge_cross_lane(a, b, ms, w, walked, lane, nlane)
+    return walked, int(-1)
+
+  @wp.func
+  def rerun_along(
+    a: Shape, b: Shape, ms: MeshSupport, res: MprResult, least: wp.vec4, along: float, scale: float,
+    mpr_options: MprSettings,
   ) -> MprResult:
-    """MPR's answer res, or MPR rerun (and refined) along the direction of least overlap
-    (least_overlap) when that comes out shallower."""
-    along = overlap_along(a, b, ms, res.normal)
-    least = least_overlap(a, b, ms, res.normal, along, scale)
+    """MPR's answer res (A and B overlap ``along`` its normal), or MPR rerun (and refined) along
+    least's direction, the one of least overlap, when that comes out shallower."""
     tol = mpr_options.tolerance
     if not (least[3] < (1.0 - MIN_GAIN) * along - tol * scale):
       return res
@@ -361,16 +418,203 @@ def deep_funcs(mode: int) -> SimpleNamespace:
       return r
     return res
 
-  return SimpleNamespace(least_overlap=least_overlap, checked_answer=checked_answer)
+  return SimpleNamespace(overlap_along=overlap_along, start_of=start_of, face_lane=face_lane, walk=walk,
+                         edge_lane=edge_lane, rerun_along=rerun_along)
+
+
+@wp.func
+def _lanes(n: int, lane_threads: int, max_lanes: int) -> int:
+  """Lanes a pair's scans are dealt to when n pairs share ``lane_threads`` threads: a few pairs
+  (few worlds, or the few a call rechecks) get many lanes, so that the check's time follows the
+  longest lane's share of a hull instead of a whole hull scanned by one thread."""
+  return wp.clamp(lane_threads // wp.max(n, 1), 1, max_lanes)
+
+
+@wp.func
+def _merge_lanes(lane_best: wp.array(dtype=wp.vec4), lane_index: wp.array(dtype=int), first: int,
+                 nlane: int) -> wp.vec4:
+  """The lanes' answers at first .. first + nlane - 1 merged as one lane scanning every candidate
+  in order would have found them: the least overlap, of equal ones the earliest candidate."""
+  best = lane_best[first]
+  index = lane_index[first]
+  for lane in range(1, nlane):
+    h = lane_best[first + lane]
+    if h[3] < best[3] or (h[3] == best[3] and lane_index[first + lane] < index):
+      best = h
+      index = lane_index[first + lane]
+  return best
+
+
+@wp.func
+def _queued_normal(deep_result: wp.array(dtype=wp.vec4), s: int) -> wp.vec3:
+  queued = deep_result[s]
+  return wp.vec3(queued[0], queued[1], queued[2])
 
 
 @functools.lru_cache(maxsize=None)
-def deep_pair_kernel(mode: int) -> wp.Kernel:
-  """The check's kernel for support mode ``mode``, in that mode's module (types.mode_module)."""
-  checked_answer = deep_funcs(mode).checked_answer
+def deep_kernels(mode: int) -> SimpleNamespace:
+  """The check's kernels for support mode ``mode``, in that mode's module (types.mode_module), in
+  launch order: ``faces`` (lanes: the face normals), ``walk`` (a pair: the edge-edge walks from
+  the best face), ``edges`` (lanes: every edge pair of small hulls) and ``finish`` (a pair: MPR
+  rerun along the least overlap, the answer queued for multi-contact or written)."""
+  funcs = deep_funcs(mode)
+  overlap_along, start_of, face_lane = funcs.overlap_along, funcs.start_of, funcs.face_lane
+  walk, edge_lane, rerun_along = funcs.walk, funcs.edge_lane, funcs.rerun_along
+  module = mode_module(__name__, mode)
 
-  @wp.kernel(module=mode_module(__name__, mode), cuda_max_registers=HEAVY_REGISTERS)
-  def deep_pair_kernel(
+  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  def deep_faces(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_condim: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_priority: wp.array(dtype=int),
+    geom_solmix: wp.array2d(dtype=float),
+    geom_solref: wp.array2d(dtype=wp.vec2),
+    geom_solimp: wp.array2d(dtype=vec5),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_friction: wp.array2d(dtype=wp.vec3),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    geom_adhesion: wp.array2d(dtype=float),
+    pair_dim: wp.array(dtype=int),
+    pair_solref: wp.array2d(dtype=wp.vec2),
+    pair_solreffriction: wp.array2d(dtype=wp.vec2),
+    pair_solimp: wp.array2d(dtype=vec5),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    pair_adhesion: wp.array2d(dtype=float),
+    pair_friction: wp.array2d(dtype=vec5),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    # In:
+    ms: MeshSupport,
+    deep_count: wp.array(dtype=int),
+    deep_pair: wp.array(dtype=int),
+    deep_result: wp.array(dtype=wp.vec4),
+    pair_in: wp.array(dtype=wp.vec2i),
+    pairid_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    lane_threads: int,
+    max_lanes: int,
+    # Out:
+    deep_band: wp.array(dtype=float),
+    deep_along: wp.array(dtype=float),
+    lane_best: wp.array(dtype=wp.vec4),
+    lane_index: wp.array(dtype=int),
+  ):
+    """Each queued pair's face normals, dealt to its lanes (_lanes): each lane's best of MPR's
+    normal and its share of the faces."""
+    tid = wp.tid()
+    n = wp.min(deep_count[0], deep_pair.shape[0])
+    nlane = _lanes(n, lane_threads, max_lanes)
+    lane = tid % nlane
+    for s in range(tid / nlane, n, lane_threads / nlane):
+      cid = deep_pair[s]
+      geoms = pair_in[cid]
+      worldid = pair_worldid_in[cid]
+      _, margin, gap, _condim, _friction, _solref, _solreffriction, _solimp, _adhesion = contact_params(
+        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
+        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
+        pair_friction, pair_in, pairid_in, cid, worldid,
+      )
+      band = wp.max(margin + gap, 0.0)
+      a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
+                               geoms, worldid)
+      normal = _queued_normal(deep_result, s)
+      along = overlap_along(a, b, ms, normal)
+      w, start = start_of(a, b, ms, normal, along, scale)
+      best, index = face_lane(a, b, ms, w, start, lane, nlane)
+      lane_best[s * nlane + lane] = best
+      lane_index[s * nlane + lane] = index
+      if lane == 0:
+        deep_band[s] = band
+        deep_along[s] = along
+
+  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  def deep_walk(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    # In:
+    ms: MeshSupport,
+    deep_count: wp.array(dtype=int),
+    deep_pair: wp.array(dtype=int),
+    deep_result: wp.array(dtype=wp.vec4),
+    deep_band: wp.array(dtype=float),
+    deep_along: wp.array(dtype=float),
+    pair_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    lane_threads: int,
+    max_lanes: int,
+    lane_best: wp.array(dtype=wp.vec4),
+    lane_index: wp.array(dtype=int),
+    nthread: int,
+    # Out:
+    deep_walked: wp.array(dtype=wp.vec4),
+  ):
+    """Each queued pair, one thread: its lanes' faces merged, then the edge-edge walks (walk)."""
+    tid = wp.tid()
+    n = wp.min(deep_count[0], deep_pair.shape[0])
+    nlane = _lanes(n, lane_threads, max_lanes)
+    for s in range(tid, n, nthread):
+      cid = deep_pair[s]
+      worldid = pair_worldid_in[cid]
+      a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
+                               deep_band[s], pair_in[cid], worldid)
+      w, start = start_of(a, b, ms, _queued_normal(deep_result, s), deep_along[s], scale)
+      deep_walked[s] = walk(a, b, ms, w, start, _merge_lanes(lane_best, lane_index, s * nlane, nlane))
+
+  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  def deep_edges(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_dataid: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    # In:
+    ms: MeshSupport,
+    deep_count: wp.array(dtype=int),
+    deep_pair: wp.array(dtype=int),
+    deep_result: wp.array(dtype=wp.vec4),
+    deep_band: wp.array(dtype=float),
+    deep_along: wp.array(dtype=float),
+    deep_walked: wp.array(dtype=wp.vec4),
+    pair_in: wp.array(dtype=wp.vec2i),
+    pair_worldid_in: wp.array(dtype=int),
+    lane_threads: int,
+    max_lanes: int,
+    # Out:
+    lane_best: wp.array(dtype=wp.vec4),
+    lane_index: wp.array(dtype=int),
+  ):
+    """Each queued pair's edge pairs on small hulls, dealt to its lanes (edge_lane)."""
+    tid = wp.tid()
+    n = wp.min(deep_count[0], deep_pair.shape[0])
+    nlane = _lanes(n, lane_threads, max_lanes)
+    lane = tid % nlane
+    for s in range(tid / nlane, n, lane_threads / nlane):
+      cid = deep_pair[s]
+      worldid = pair_worldid_in[cid]
+      a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
+                               deep_band[s], pair_in[cid], worldid)
+      w, _ = start_of(a, b, ms, _queued_normal(deep_result, s), deep_along[s], scale)
+      best, index = edge_lane(a, b, ms, w, deep_walked[s], lane, nlane)
+      lane_best[s * nlane + lane] = best
+      lane_index[s * nlane + lane] = index
+
+  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  def deep_finish(
     # Model:
     geom_type: wp.array(dtype=int),
     geom_condim: wp.array(dtype=int),
@@ -410,6 +654,11 @@ def deep_pair_kernel(mode: int) -> wp.Kernel:
     deep_pair: wp.array(dtype=int),
     deep_result: wp.array(dtype=wp.vec4),
     deep_pos: wp.array(dtype=wp.vec3),
+    deep_along: wp.array(dtype=float),
+    lane_threads: int,
+    max_lanes: int,
+    lane_best: wp.array(dtype=wp.vec4),
+    lane_index: wp.array(dtype=int),
     pair_in: wp.array(dtype=wp.vec2i),
     pairid_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
@@ -440,11 +689,13 @@ def deep_pair_kernel(mode: int) -> wp.Kernel:
     contact_adhesion_out: wp.array(dtype=float),
     nacon_out: wp.array(dtype=int),
   ):
-    """The deep answers the convex kernel queued, one thread a pair: each checked along the face
-    normals of both shapes (checked_answer), then queued for multi-contact or written as the
+    """Each queued pair, one thread: its lanes' edge pairs merged into the least overlap, MPR rerun
+    along it where it is shallower (rerun_along), then queued for multi-contact or written as the
     convex kernel does."""
     tid = wp.tid()
-    for s in range(tid, wp.min(deep_count[0], deep_pair.shape[0]), nthread):
+    n = wp.min(deep_count[0], deep_pair.shape[0])
+    nlane = _lanes(n, lane_threads, max_lanes)
+    for s in range(tid, n, nthread):
       cid = deep_pair[s]
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
@@ -462,7 +713,8 @@ def deep_pair_kernel(mode: int) -> wp.Kernel:
       res.normal = wp.vec3(queued[0], queued[1], queued[2])
       res.depth = queued[3]
       res.pos = deep_pos[s]
-      res = checked_answer(a, b, ms, res, scale, mpr_options)
+      least = _merge_lanes(lane_best, lane_index, s * nlane, nlane)
+      res = rerun_along(a, b, ms, res, least, deep_along[s], scale, mpr_options)
       value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
       if warm_start:
         key = geoms[0] * geom_type.shape[0] + geoms[1]
@@ -485,7 +737,7 @@ def deep_pair_kernel(mode: int) -> wp.Kernel:
         contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
       )
 
-  return deep_pair_kernel
+  return SimpleNamespace(faces=deep_faces, walk=deep_walk, edges=deep_edges, finish=deep_finish)
 
 
 def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota: ContactQuota) -> None:
@@ -495,18 +747,43 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
   opt = c.options
   if not c.mpr_types or opt.narrowphase == "gjk":
     return
+  kernels = deep_kernels(SUPPORT_MODE_ID[opt.support_mode])
   nthread = max(1, min(b.pair.shape[0], GRID_THREADS))
+  max_lanes = b.max_lanes or (DEEP_LANES if d.nacon.device.is_cuda else 1)
+  lane_threads = LANE_THREADS if max_lanes > 1 else nthread
+  geometry = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat, c.mesh_support,
+              b.count, b.pair, b.result, b.band, b.along]
+  params = [m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
+            m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
+            m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+            m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat]
   wp.launch(
-    deep_pair_kernel(SUPPORT_MODE_ID[opt.support_mode]),
+    kernels.faces,
+    dim=lane_threads,
+    inputs=params + [c.mesh_support, b.count, b.pair, b.result, pairs.pair, pairs.pairid, pairs.pair_worldid,
+                     lane_threads, max_lanes],
+    outputs=[b.band, b.along, b.lane_best, b.lane_index],
+  )
+  wp.launch(
+    kernels.walk,
     dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.pair_dim,
-      m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-      m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
+    inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.lane_best, b.lane_index, nthread],
+    outputs=[b.walked],
+  )
+  wp.launch(
+    kernels.edges,
+    dim=lane_threads,
+    inputs=geometry + [b.walked, pairs.pair, pairs.pair_worldid, lane_threads, max_lanes],
+    outputs=[b.lane_best, b.lane_index],
+  )
+  wp.launch(
+    kernels.finish,
+    dim=nthread,
+    inputs=params[:-2] + [d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
       settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
       opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
-      b.count, b.pair, b.result, b.pos, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
+      b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,
+      pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
     ],
     outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
              narrow.patch_pos] + contact_outputs(d),

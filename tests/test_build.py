@@ -70,9 +70,9 @@ def _package_kernels() -> list:
     narrowphase.convex_kernel(False, SUPPORT_REFINED),
     narrowphase.convex_kernel(True, SUPPORT_REFINED),
     narrowphase.sift_mpr_pairs(SUPPORT_REFINED),
-    deep_pairs.deep_pair_kernel(SUPPORT_REFINED),
     nonconvex.nonconvex_narrowphase(SUPPORT_REFINED),
   ]
+  kernels += list(vars(deep_pairs.deep_kernels(SUPPORT_REFINED)).values())
   kernels += list(vars(multicontact_pass.pass_kernels(SUPPORT_REFINED)).values())
   kernels += list(vars(heightfield.stage_kernels(SUPPORT_REFINED)).values())
   return kernels

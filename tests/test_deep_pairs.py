@@ -275,3 +275,24 @@ def test_deep_pair_rechecked_when_nearest_face_changes(monkeypatch):
   monkeypatch.setattr(narrowphase, "DEEP_RECHECK_CALLS", 1 << 20)
   stuck, _ = _slide(period)
   assert angle_deg(stuck[-1][0], first) < 1.0, "without the recheck MPR should stay on the first face"
+
+
+@pytest.mark.parametrize("k", range(4))
+@pytest.mark.parametrize("lanes", [3, 16])
+def test_lanes_answer_as_one_thread(k, lanes):
+  """A pair's scans dealt to several lanes (as on a GPU) give the contacts of one thread scanning
+  every candidate in order, bit for bit: the lanes merge to the earliest candidate of least
+  overlap (a box's parallel faces and edges tie exactly)."""
+  mjm, qpos = _example(k)
+  sim = load(None, mjm=mjm, nworld=NPOSE, qpos=qpos)
+  collider = sf.install(mjm, sim.m, sf.Options(warm_start=False))
+  state = collider.state(sim.m, sim.d)
+  rows = {}
+  for nlane in (1, lanes):
+    state.deep.max_lanes = nlane
+    sf.collision(sim.m, sim.d)
+    assert collider.stats(sim.d)["deep_pairs"] >= 2
+    n = int(sim.d.nacon.numpy()[0])
+    rows[nlane] = [getattr(sim.d.contact, f).numpy()[:n].copy() for f in ("dist", "pos", "frame", "geom", "worldid")]
+  for one, laned in zip(rows[1], rows[lanes]):
+    np.testing.assert_array_equal(one, laned)

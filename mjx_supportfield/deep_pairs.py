@@ -791,37 +791,47 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
             m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
             m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
             m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat]
-  wp.launch(
-    kernels.faces,
-    dim=lane_threads,
-    inputs=params + [c.mesh_support, b.count, b.pair, b.result, pairs.pair, pairs.pairid, pairs.pair_worldid,
-                     lane_threads, max_lanes],
-    outputs=[b.band, b.along, b.lane_best, b.lane_index],
-  )
-  for rnd in range(EDGE_ROUNDS):
+
+  def check():
     wp.launch(
-      kernels.round,
+      kernels.faces,
       dim=lane_threads,
-      inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.lane_best, b.lane_index, rnd],
-      outputs=[b.walk_cur, b.walk_live, b.round_best, b.round_index],
+      inputs=params + [c.mesh_support, b.count, b.pair, b.result, pairs.pair, pairs.pairid, pairs.pair_worldid,
+                       lane_threads, max_lanes],
+      outputs=[b.band, b.along, b.lane_best, b.lane_index],
     )
-  last = (EDGE_ROUNDS - 1) % 2
-  wp.launch(
-    kernels.edges,
-    dim=lane_threads,
-    inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.round_best[last],
-                       b.round_index[last]],
-    outputs=[b.lane_best, b.lane_index],
-  )
-  wp.launch(
-    kernels.finish,
-    dim=nthread,
-    inputs=params[:-2] + [d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-      settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
-      opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
-      b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,
-      pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
-    ],
-    outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
-             narrow.patch_pos] + contact_outputs(d),
-  )
+    for rnd in range(EDGE_ROUNDS):
+      wp.launch(
+        kernels.round,
+        dim=lane_threads,
+        inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.lane_best, b.lane_index, rnd],
+        outputs=[b.walk_cur, b.walk_live, b.round_best, b.round_index],
+      )
+    last = (EDGE_ROUNDS - 1) % 2
+    wp.launch(
+      kernels.edges,
+      dim=lane_threads,
+      inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.round_best[last],
+                         b.round_index[last]],
+      outputs=[b.lane_best, b.lane_index],
+    )
+    wp.launch(
+      kernels.finish,
+      dim=nthread,
+      inputs=params[:-2] + [d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
+        settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
+        opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
+        b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,
+        pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
+      ],
+      outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
+               narrow.patch_pos] + contact_outputs(d),
+    )
+
+  # in a graph, the check's launches are skipped on the device when no answer was queued (most
+  # steps of most scenes), as MuJoCo Warp gates its own launches; outside one, a host-side test
+  # would cost a synchronization a step, more than the launches that exit at once
+  if m.opt.graph_conditional and d.nacon.device.is_capturing:
+    wp.capture_if(b.count, on_true=check)
+  else:
+    check()

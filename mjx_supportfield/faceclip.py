@@ -50,7 +50,9 @@ FACE_NONE = wp.constant(0)
 FACE_BOX = wp.constant(1)  # index: 2 * axis, + 1 on the negative side
 FACE_MESH = wp.constant(2)  # index: the hull polygon (global)
 FACE_DISK = wp.constant(3)  # index: 0 the cylinder's top end, 1 its bottom
-FACE_SEGMENT = wp.constant(4)  # a line of a cylinder's side or of a capsule: p0, p1
+# a line of a cylinder's side or of a capsule, or a tilted face's edge: p0, p1 (nvert 2); a
+# tilted face's corner p0 with its two edges to p1 and p2 (nvert 3), or alone (nvert 1)
+FACE_SEGMENT = wp.constant(4)
 
 # Manifold.status
 CLIPPED = wp.constant(0)
@@ -84,7 +86,8 @@ def _box_face_code(face: int) -> int:
 @wp.struct
 class Face:
   """A flat feature of a shape: a face (kind, index, corners) with its outward normal (world),
-  or a segment (p0, p1 in the shape's frame)."""
+  or a segment (FACE_SEGMENT, in the shape's frame: p0 to p1; or a tilted face's corner p0 and
+  its edges to p1 and p2, or that corner alone)."""
 
   kind: int
   index: int
@@ -92,6 +95,7 @@ class Face:
   normal: wp.vec3
   p0: wp.vec3
   p1: wp.vec3
+  p2: wp.vec3
 
 
 @wp.struct
@@ -171,6 +175,7 @@ def _no_face() -> Face:
   f.normal = wp.vec3(0.0)
   f.p0 = wp.vec3(0.0)
   f.p1 = wp.vec3(0.0)
+  f.p2 = wp.vec3(0.0)
   return f
 
 
@@ -601,27 +606,34 @@ def _chosen(picks: Picks, plane_offset: float, plane: wp.vec4, spacing: float, m
 
 @wp.func
 def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, frame: wp.mat33, to_face: wp.quat,
-                      shift: wp.vec3, plane_offset: float, band: float, spacing: float, slack: float) -> Manifold:
-  """A line (a cylinder's side, a capsule's) on the reference face: the ends of its piece within
-  the side planes, those within the band (face frame)."""
+                      shift: wp.vec3, plane_offset: float, band: float, spacing: float, slack: float,
+                      max_contacts: int) -> Manifold:
+  """A line (a cylinder's side, a capsule's, a tilted face's edge) on the reference face: the
+  ends of its piece within the side planes, those within the band (face frame). A tilted face's
+  corner with its two edges (nvert 3): both edges so, the corner once (up to max_contacts, at
+  least 2); the corner alone (nvert 1): itself, where it lies within the side planes and the
+  band."""
   mf = Manifold()
   mf.status = CLIPPED
   mf.n = 0
   mf.ref_is_b = False
   mf.first = -1
+  limit = wp.where(inc.nvert == 3, wp.max(2, wp.min(3, max_contacts)), 2)
   r0 = _ref_corner(ref_shape, ref, ms, frame, 0)
   wr = wp.where(_cross2(_ref_corner(ref_shape, ref, ms, frame, 1) - r0,
                         _ref_corner(ref_shape, ref, ms, frame, 2) - r0) >= 0.0, 1.0, -1.0)
   p = wp.quat_rotate(to_face, inc.p0) + shift
-  q = wp.quat_rotate(to_face, inc.p1) + shift
-  t = _clip_segment(ref_shape, ref, ms, frame, wr, wp.vec2(p[0], p[1]), wp.vec2(q[0], q[1]), slack)
-  if t[0] <= t[1]:
-    x = p + t[0] * (q - p)
-    if x[2] - plane_offset <= band:
-      mf = _put(mf, x, x[2] - plane_offset, spacing, 2)
-    x = p + t[1] * (q - p)
-    if x[2] - plane_offset <= band:
-      mf = _put(mf, x, x[2] - plane_offset, spacing, 2)
+  for e in range(wp.where(inc.nvert == 3, 2, 1)):
+    q = wp.quat_rotate(to_face, wp.where(e == 0, inc.p1, inc.p2)) + shift
+    t = _clip_segment(ref_shape, ref, ms, frame, wr, wp.vec2(p[0], p[1]), wp.vec2(q[0], q[1]), slack)
+    if t[0] <= t[1]:
+      # the second edge starts at the corner the first gave already
+      x = p + t[0] * (q - p)
+      if (e == 0 or t[0] > 0.0) and x[2] - plane_offset <= band:
+        mf = _put(mf, x, x[2] - plane_offset, spacing, limit)
+      x = p + t[1] * (q - p)
+      if inc.nvert >= 2 and x[2] - plane_offset <= band:
+        mf = _put(mf, x, x[2] - plane_offset, spacing, limit)
   return mf
 
 
@@ -629,6 +641,42 @@ def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, f
 def face_code(f: Face) -> int:
   """A face as one int (kind and index), for the queue between face_pair and clip_faces."""
   return f.index * 8 + f.kind
+
+
+@wp.func
+def _tilted_face_feature(s: Shape, ms: MeshSupport, f: Face, u: wp.vec3) -> Face:
+  """The feature of face f (not a segment) leading toward world direction u where f is tilted
+  from u by more than MuJoCo's face tolerance: as in MuJoCo's multi-CCD, not a face on a face
+  but an edge on a face, an edge of f through its corner furthest along u that lies across u
+  (within EDGE_TOL), as a segment (nvert 2); where neither edge through that corner does, the
+  corner alone (nvert 1). Where both do (a round polygon's rim, tilted), MuJoCo takes the first
+  in its hull's bookkeeping: both are kept (nvert 3, the nearer to lying across u to p1).
+  Clipping the whole tilted face instead gave every corner of it within the band: on a
+  chamfered box resting on an edge, the chamfer's far corners beside the edge's, near-duplicate
+  contacts that stiffen the soft contact."""
+  lu = wp.transpose(s.rot) @ u
+  lead = int(0)
+  top = wp.dot(_corner(s, ms, f, 0), lu)
+  for k in range(1, f.nvert):
+    h = wp.dot(_corner(s, ms, f, k), lu)
+    if h > top:
+      top = h
+      lead = k
+  x = _corner(s, ms, f, lead)
+  before = _corner(s, ms, f, (lead + f.nvert - 1) % f.nvert) - x
+  after = _corner(s, ms, f, (lead + 1) % f.nvert) - x
+  # |cos| of each edge's angle to u: the one nearer to lying across u
+  cos_before = wp.abs(wp.dot(before, lu)) / wp.max(wp.length(before), 1.0e-12)
+  cos_after = wp.abs(wp.dot(after, lu)) / wp.max(wp.length(after), 1.0e-12)
+  seg = _no_face()
+  seg.kind = FACE_SEGMENT
+  seg.normal = u
+  seg.p0 = x
+  seg.p1 = x + wp.where(cos_after < cos_before, after, before)
+  seg.p2 = x + wp.where(cos_after < cos_before, before, after)
+  seg.nvert = wp.where(wp.min(cos_before, cos_after) < EDGE_TOL, wp.where(wp.max(cos_before, cos_after) < EDGE_TOL, 3, 2),
+                       1)
+  return seg
 
 
 @functools.lru_cache(maxsize=None)
@@ -672,11 +720,16 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
 
   @wp.func
   def _incident(s: Shape, ms: MeshSupport, u: wp.vec3) -> Face:
-    """The feature of s facing world direction u (toward the reference face): its face nearest u,
-    or for a cylinder lying on its side or a capsule the line of its surface along u; kind
-    FACE_NONE where s meets the reference face in a point of a curved surface."""
+    """The feature of s facing world direction u (toward the reference face): its face nearest u
+    where that face lies across u within FACE_TOL, else that face's edge or corner leading along
+    u (_tilted_face_feature); for a cylinder lying on its side or a capsule the line of its
+    surface along u; kind FACE_NONE where s meets the reference face in a point of a curved
+    surface."""
     if s.gtype == GeomType.BOX or s.gtype == GeomType.MESH:
-      return _flat_face(s, ms, u)
+      f = _flat_face(s, ms, u)
+      if f.kind == FACE_NONE or wp.dot(f.normal, u) >= FACE_TOL:
+        return f
+      return _tilted_face_feature(s, ms, f, u)
     f = _no_face()
     lu = wp.transpose(s.rot) @ u
     if s.gtype == GeomType.CYLINDER and wp.abs(lu[2]) >= FACE_TOL:
@@ -781,7 +834,7 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
     max_contacts = wp.min(max_contacts, MAX_MANIFOLD)
     if inc.kind == FACE_SEGMENT:
       out = _segment_manifold(ref_shape, ref, inc, ms, frame, to_face, shift, plane_offset, band, spacing,
-                              ON_FACE_TOL * scale)
+                              ON_FACE_TOL * scale, max_contacts)
     else:
       if wp.abs(_incident_plane(inc_shape, inc, ms, to_face, shift)[2]) < 1.0e-3:
         return out  # the incident face stands on edge: no polygon to clip

@@ -448,3 +448,49 @@ def test_polygon_end_on_face_gets_mujocos_quadrilateral(narrowphase, sides, yaw)
   assert c.n == 4, f"{c.n} contacts"
   _match(c.pos.astype(np.float64), want, 5e-5)
   np.testing.assert_allclose(c.dist, -0.001, atol=2e-5)
+
+
+def _chamfered_carton(tilt_x: float, tilt_y: float) -> str:
+  """A carton (a box 40 x 40 x 80 mm whose four upright edges are chamfered 1.3 mm, a mesh, as
+  robosuite's milk) turned tilt_x degrees about x, then tilt_y about its own y, its lowest corner
+  0.8 mm into a box's top face."""
+  a, c, h, depth = 0.02, 0.0013, 0.04, 8e-4
+  octagon = [(a - c, a), (c - a, a), (-a, a - c), (-a, c - a), (c - a, -a), (a - c, -a), (a, c - a), (a, a - c)]
+  corners = np.array([[x, y, z] for z in (-h, h) for x, y in octagon])
+  quat = np.zeros(4)
+  mujoco.mju_euler2Quat(quat, np.radians([tilt_x, tilt_y, 0.0]), "XYZ")
+  rot = np.zeros(9)
+  mujoco.mju_quat2Mat(rot, quat)
+  lowest = (corners @ rot.reshape(3, 3).T)[:, 2].min()
+  vertex = " ".join(f"{x} {y} {z}" for x, y, z in corners)
+  return f"""
+<mujoco>
+  <asset><mesh name="carton" vertex="{vertex}"/></asset>
+  <worldbody>
+    <geom name="table" type="box" pos="0 0 -.05" size=".1 .1 .05"/>
+    <body pos="0 0 {-lowest - depth:.9f}" quat="{' '.join(f'{q:.12f}' for q in quat)}">
+      <freejoint/><geom name="carton" type="mesh" mesh="carton"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("narrowphase", NARROWPHASES)
+@pytest.mark.parametrize("tilt,count", [((22.5, 0.0), 2), ((22.5, 10.0), 1), ((3.0, 0.0), 4)])
+def test_tilted_face_touches_by_its_edge_or_corner(narrowphase, tilt, count):
+  """A chamfered carton resting on an edge (its bottom 22.5 degrees off the table's face, more
+  than MuJoCo's face tolerance) touches by the bottom's lowest edge: MuJoCo C's two contacts at
+  its ends, not also the chamfers' corners 1.8 mm beside them (clipping the tilted bottom gave
+  those: near-duplicates that stiffen the soft contact). Turned about y too, no edge lies along
+  the face, and MuJoCo C writes the lowest corner alone. Tilted 3 degrees (within the tolerance)
+  it is a face on a face: four corners of the clipped bottom."""
+  sim = load(_chamfered_carton(*tilt))
+  sf.install(sim.mjm, sim.m, sf.Options(narrowphase=narrowphase))
+  sf.collision(sim.m, sim.d)
+  c = contacts(sim.d, 0)
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  assert len(ref) == count, f"MuJoCo C now gives {len(ref)} contacts"
+  assert c.n == count, f"{c.n} contacts, MuJoCo C {count}"
+  _match(c.pos.astype(np.float64), np.array([r.pos for r in ref]), 5e-5)
+  np.testing.assert_allclose(np.sort(c.dist), np.sort([r.dist for r in ref]), atol=2e-5)

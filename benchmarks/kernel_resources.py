@@ -56,7 +56,7 @@ def kernels() -> dict:
     "convex (MPR)": narrowphase.convex_kernel(False, _MODE),
     "convex (GJK/EPA)": narrowphase.convex_kernel(True, _MODE),
     "deep pairs (faces, lanes)": deep_pairs.deep_kernels(_MODE).faces,
-    "deep pairs (walk)": deep_pairs.deep_kernels(_MODE).walk,
+    "deep pairs (walk round, lanes)": deep_pairs.deep_kernels(_MODE).round,
     "deep pairs (edges, lanes)": deep_pairs.deep_kernels(_MODE).edges,
     "deep pairs (finish)": deep_pairs.deep_kernels(_MODE).finish,
     "tilt (closed form)": multicontact_pass.pass_kernels(_MODE).tilt,

@@ -516,6 +516,18 @@ def make_buffers(c, d) -> Buffers:
   return b
 
 
+def _grid_of(kernel, m, d) -> dict:
+  """A one-thread-a-pair kernel's launch on a GPU as stock MuJoCo Warp launches its nxn: its
+  block size, and blocks capped at a few times what fills the GPU, each thread looping over
+  several (world, pair) items (a robot's thousand pairs in 8192 worlds would otherwise start
+  millions of threads that mostly test one box each and exit)."""
+  if not d.geom_xpos.device.is_cuda:
+    return {}
+  block, grid = wp.get_suggested_block_size(kernel, d.geom_xpos.device)
+  block_dim = m.block_dim.nxn_broadphase
+  return {"block_dim": block_dim, "max_blocks": max(1, 8 * block * grid // block_dim)}
+
+
 def launch(c, m, d, b: Buffers, queues: PairQueues, awake_prev):
   """The broad phase of one step: boxes, then nxn or the sweep (and the listed pairs), then the
   compacted pair list, its pairs dealt out to ``queues`` (``c``: the installed Collider)."""
@@ -546,11 +558,13 @@ def launch(c, m, d, b: Buffers, queues: PairQueues, awake_prev):
                  b.aabb_hi]
 
   def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
+    kernel = listed_pairs_kernel(key, direct)
     wp.launch(
-      listed_pairs_kernel(key, direct),
+      kernel,
       dim=(d.nworld, npair),
       inputs=common_model + common_data + [pairs, pairids, c.max_pairs, warn],
       outputs=[b.outputs, queues],
+      **_grid_of(kernel, m, d),
     )
 
   if c.nxn:

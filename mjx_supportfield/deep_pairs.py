@@ -26,11 +26,12 @@ at a phase of its own: MPR warm-started on a face stays on it, so only a new che
 another face became the nearest.
 
 On a GPU the check's time is its longest thread's: a few deep pairs a world, each a scan of
-hundreds of faces, leave most of the GPU idle. Each pair's face scan and edge-pair scan are dealt
-to lanes (``DEEP_LANES`` threads at most, fewer when many pairs are queued), and the lanes'
-answers merge to the earliest candidate of least overlap, the answer one thread scanning them
-all in order gives, bit for bit. The check runs as four kernels: faces (lanes), the edge-edge
-walks from the best face (a thread a pair), edge pairs (lanes), and the finish (a thread a pair).
+hundreds of faces and a walk over edge-edge directions, leave most of the GPU idle. Each pair's
+face scan, each round of its walks and its edge-pair scan are dealt to lanes (``DEEP_LANES``
+threads at most, fewer when many pairs are queued), and the lanes' answers merge to the earliest
+candidate of least overlap, the answer one thread scanning them all in order gives, bit for bit.
+The check runs as faces (lanes), ``EDGE_ROUNDS`` walk rounds (lanes), edge pairs (lanes) and the
+finish (a thread a pair).
 
 This module owns the queue and the check's scratch (``Buffers``, ``make_buffers``), its kernels
 (``deep_kernels``) and the host entry, ``launch``. A checked pair leaves as the convex kernel would have left it:
@@ -82,7 +83,7 @@ MIN_GAIN = 1.0e-4
 # fraction of the pair's scale (plus float rounding at the shapes' distance from the origin)
 PRUNE_SLACK = 1.0e-4
 FLOAT_EPS = 1.1920929e-07  # float32's machine epsilon
-EDGE_ROUNDS = 4  # steps of the walk over edge-edge directions (_descend_edges)
+EDGE_ROUNDS = 4  # rounds of the walk over edge-edge directions (round_lane), a launch each
 # pairs with at most this many edge pairs (a box has 3 edge directions) also try every one: two
 # support queries each
 EDGE_PAIR_BUDGET = 1024
@@ -103,13 +104,18 @@ class Buffers:
   pair: wp.array  # indices into the pair list
   result: wp.array  # MPR's normal (xyz) and depth (w), margin band included
   pos: wp.array  # MPR's point
-  # the check's own, a row each: the margin band, the overlap along MPR's normal, the walk's answer
+  # the check's own, a row each: the margin band, the overlap along MPR's normal
   band: wp.array
   along: wp.array
-  walked: wp.array
   # each lane's answer and the index of its candidate (a row's lanes side by side)
   lane_best: wp.array
   lane_index: wp.array
+  # the walks' rounds, two buffers that alternate: each walk's answer and whether it goes on (a
+  # row's two walks side by side), and each lane's answer and its cross's number
+  walk_cur: wp.array
+  walk_live: wp.array
+  round_best: wp.array
+  round_index: wp.array
   max_lanes: int = 0  # lanes a pair at most; 0: DEEP_LANES on a GPU, 1 on the CPU
 
 
@@ -120,8 +126,11 @@ def make_buffers(nworld: int, capacity: int) -> Buffers:
   lane_slots = max(rows, LANE_THREADS)
   return Buffers(count=wp.zeros(2, dtype=int), pair=wp.zeros(rows, dtype=int), result=wp.zeros(rows, dtype=wp.vec4),
                  pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
-                 along=wp.zeros(rows, dtype=float), walked=wp.zeros(rows, dtype=wp.vec4),
-                 lane_best=wp.zeros(lane_slots, dtype=wp.vec4), lane_index=wp.zeros(lane_slots, dtype=int))
+                 along=wp.zeros(rows, dtype=float), lane_best=wp.zeros(lane_slots, dtype=wp.vec4),
+                 lane_index=wp.zeros(lane_slots, dtype=int), walk_cur=wp.zeros((2, 2 * rows), dtype=wp.vec4),
+                 walk_live=wp.zeros((2, 2 * rows), dtype=int),
+                 round_best=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=wp.vec4),
+                 round_index=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=int))
 
 
 @wp.struct
@@ -205,7 +214,7 @@ def _edge_ends(s: Shape, ms: MeshSupport) -> int:
 @functools.lru_cache(maxsize=None)
 def deep_funcs(mode: int) -> SimpleNamespace:
   """The check's device functions on the support functions of support mode ``mode``
-  (support_funcs, mpr_funcs), in the check's order: ``start_of``, ``face_lane``, ``walk``,
+  (support_funcs, mpr_funcs), in the check's order: ``start_of``, ``face_lane``, ``round_lane``,
   ``edge_lane``, ``rerun_along``."""
   support = support_funcs(mode)
   mesh_support_index = support.mesh_support_index
@@ -278,20 +287,27 @@ def deep_funcs(mode: int) -> SimpleNamespace:
     return -1
 
   @wp.func
-  def _edge_crosses(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4) -> wp.vec4:
-    """best improved by the cross products of the edges of A and B at their support points along
-    best's direction (each turned to point from A to B)."""
-    u = wp.vec3(best[0], best[1], best[2])
+  def round_lane(a: Shape, b: Shape, ms: MeshSupport, w: Witness, cur: wp.vec4, lane: int, nlane: int):
+    """One round of the edge-edge walk: cur improved by the cross products of the edges of A and B
+    at their support points along cur's direction (each turned to point from A to B) that fall to
+    ``lane`` of ``nlane`` (numbered A's edge first), with the number of the cross that gave the
+    answer (-1: cur's), by which lanes merge (_merge_lanes). A polytope pair's penetration
+    direction need not be a face normal of either shape; where it is an edge-edge direction, its
+    edges lie at the support points of directions near it."""
+    u = wp.vec3(cur[0], cur[1], cur[2])
     va = _support_vertex(a, ms, u)
     vb = _support_vertex(b, ms, -u)
     pa = _vertex_or(a, ms, va, w.a1)
     pb = _vertex_or(b, ms, vb, w.b1)
     nb = _edge_count(b, ms, vb)
-    for i in range(_edge_count(a, ms, va)):
-      ea = _edge(a, ms, va, i)
-      for j in range(nb):
-        best = _cross_direction(a, b, ms, w, ea, _edge(b, ms, vb, j), pa, pb, u, best)
-    return best
+    best = cur
+    index = int(-1)
+    for k in range(lane, _edge_count(a, ms, va) * nb, nlane):
+      h = _cross_direction(a, b, ms, w, _edge(a, ms, va, k / nb), _edge(b, ms, vb, k % nb), pa, pb, u, best)
+      if h[3] < best[3]:
+        best = h
+        index = k
+    return best, index
 
   @wp.func
   def _cross_direction(
@@ -355,19 +371,6 @@ def deep_funcs(mode: int) -> SimpleNamespace:
     return best, index
 
   @wp.func
-  def _descend_edges(a: Shape, b: Shape, ms: MeshSupport, w: Witness, best: wp.vec4) -> wp.vec4:
-    """best improved by walking over edge-edge directions: the crosses of the edges at the support
-    points, again from the better one found, up to EDGE_ROUNDS times. A polytope pair's
-    penetration direction need not be a face normal of either shape; where it is an edge-edge
-    direction, its edges lie at the support points of directions near it."""
-    for _ in range(EDGE_ROUNDS):
-      start = best[3]
-      best = _edge_crosses(a, b, ms, w, best)
-      if not (best[3] < start):
-        break
-    return best
-
-  @wp.func
   def start_of(a: Shape, b: Shape, ms: MeshSupport, normal: wp.vec3, along: float, scale: float):
     """The check's start on a pair whose MPR normal is ``normal`` (A and B overlap ``along`` it):
     its witness points, and ``normal`` with that overlap (xyz, w), the answer to beat."""
@@ -380,17 +383,6 @@ def deep_funcs(mode: int) -> SimpleNamespace:
     (_face_lane), with the index of its direction (-1: start's)."""
     best, index = _face_lane(a, a, b, ms, w, 1.0, start, -1, 0, lane, nlane)
     return _face_lane(b, a, b, ms, w, -1.0, best, index, FACES_OF_B, lane, nlane)
-
-  @wp.func
-  def walk(a: Shape, b: Shape, ms: MeshSupport, w: Witness, start: wp.vec4, faces: wp.vec4) -> wp.vec4:
-    """faces (the best of start and the face normals) improved by the edge-edge directions found
-    near it and near start's."""
-    best = _descend_edges(a, b, ms, w, faces)
-    if faces[3] < start[3]:  # else the walk from MPR's normal is the one just taken
-      near = _descend_edges(a, b, ms, w, start)
-      if near[3] < best[3]:
-        best = near
-    return best
 
   @wp.func
   def edge_lane(a: Shape, b: Shape, ms: MeshSupport, w: Witness, walked: wp.vec4, lane: int, nlane: int):
@@ -418,7 +410,7 @@ def deep_funcs(mode: int) -> SimpleNamespace:
       return r
     return res
 
-  return SimpleNamespace(overlap_along=overlap_along, start_of=start_of, face_lane=face_lane, walk=walk,
+  return SimpleNamespace(overlap_along=overlap_along, start_of=start_of, face_lane=face_lane, round_lane=round_lane,
                          edge_lane=edge_lane, rerun_along=rerun_along)
 
 
@@ -454,12 +446,12 @@ def _queued_normal(deep_result: wp.array(dtype=wp.vec4), s: int) -> wp.vec3:
 @functools.lru_cache(maxsize=None)
 def deep_kernels(mode: int) -> SimpleNamespace:
   """The check's kernels for support mode ``mode``, in that mode's module (types.mode_module), in
-  launch order: ``faces`` (lanes: the face normals), ``walk`` (a pair: the edge-edge walks from
-  the best face), ``edges`` (lanes: every edge pair of small hulls) and ``finish`` (a pair: MPR
+  launch order: ``faces`` (lanes: the face normals), ``round`` (lanes, EDGE_ROUNDS launches: the
+  edge-edge walks from the best face and from MPR's normal, a round each), ``edges`` (lanes: every edge pair of small hulls) and ``finish`` (a pair: MPR
   rerun along the least overlap, the answer queued for multi-contact or written)."""
   funcs = deep_funcs(mode)
   overlap_along, start_of, face_lane = funcs.overlap_along, funcs.start_of, funcs.face_lane
-  walk, edge_lane, rerun_along = funcs.walk, funcs.edge_lane, funcs.rerun_along
+  round_lane, edge_lane, rerun_along = funcs.round_lane, funcs.edge_lane, funcs.rerun_along
   module = mode_module(__name__, mode)
 
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
@@ -534,7 +526,7 @@ def deep_kernels(mode: int) -> SimpleNamespace:
         deep_along[s] = along
 
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
-  def deep_walk(
+  def deep_round(
     # Model:
     geom_type: wp.array(dtype=int),
     geom_dataid: wp.array2d(dtype=int),
@@ -556,21 +548,56 @@ def deep_kernels(mode: int) -> SimpleNamespace:
     max_lanes: int,
     lane_best: wp.array(dtype=wp.vec4),
     lane_index: wp.array(dtype=int),
-    nthread: int,
+    rnd: int,
     # Out:
-    deep_walked: wp.array(dtype=wp.vec4),
+    walk_cur: wp.array2d(dtype=wp.vec4),
+    walk_live: wp.array2d(dtype=int),
+    round_best: wp.array2d(dtype=wp.vec4),
+    round_index: wp.array2d(dtype=int),
   ):
-    """Each queued pair, one thread: its lanes' faces merged, then the edge-edge walks (walk)."""
+    """Round ``rnd`` of each queued pair's two walks (walk 0 from the best of the faces' lanes,
+    walk 1 from MPR's normal where a face beat it), dealt to lanes: the previous round's lanes
+    merged, and the walk stops where they did not improve it, as one thread's walk stops.
+    Buffers alternate between rounds (index rnd % 2), so a lane never reads what another lane of
+    the same round writes."""
     tid = wp.tid()
     n = wp.min(deep_count[0], deep_pair.shape[0])
-    nlane = _lanes(n, lane_threads, max_lanes)
-    for s in range(tid, n, nthread):
+    nlane = _lanes(2 * n, lane_threads, max_lanes)
+    lane = tid % nlane
+    now = rnd % 2
+    before = 1 - now
+    for q in range(tid / nlane, 2 * n, lane_threads / nlane):
+      s = q / 2
       cid = deep_pair[s]
-      worldid = pair_worldid_in[cid]
       a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
-                               deep_band[s], pair_in[cid], worldid)
+                               deep_band[s], pair_in[cid], pair_worldid_in[cid])
       w, start = start_of(a, b, ms, _queued_normal(deep_result, s), deep_along[s], scale)
-      deep_walked[s] = walk(a, b, ms, w, start, _merge_lanes(lane_best, lane_index, s * nlane, nlane))
+      cur = start
+      live = False
+      if rnd == 0:
+        nface = _lanes(n, lane_threads, max_lanes)
+        faces = _merge_lanes(lane_best, lane_index, s * nface, nface)
+        if q % 2 == 0:
+          cur = faces
+          live = True
+        else:
+          live = faces[3] < start[3]  # else the walk from MPR's normal is walk 0's
+      else:
+        cur = walk_cur[before, q]
+        if walk_live[before, q] != 0:
+          merged = _merge_lanes(round_best[before], round_index[before], q * nlane, nlane)
+          live = merged[3] < cur[3]
+          if live:
+            cur = merged
+      best = cur
+      index = int(-1)
+      if live:
+        best, index = round_lane(a, b, ms, w, cur, lane, nlane)
+      round_best[now, q * nlane + lane] = best
+      round_index[now, q * nlane + lane] = index
+      if lane == 0:
+        walk_cur[now, q] = cur
+        walk_live[now, q] = int(live)
 
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
   def deep_edges(
@@ -589,16 +616,18 @@ def deep_kernels(mode: int) -> SimpleNamespace:
     deep_result: wp.array(dtype=wp.vec4),
     deep_band: wp.array(dtype=float),
     deep_along: wp.array(dtype=float),
-    deep_walked: wp.array(dtype=wp.vec4),
     pair_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
     lane_threads: int,
     max_lanes: int,
+    last_best: wp.array(dtype=wp.vec4),
+    last_index: wp.array(dtype=int),
     # Out:
     lane_best: wp.array(dtype=wp.vec4),
     lane_index: wp.array(dtype=int),
   ):
-    """Each queued pair's edge pairs on small hulls, dealt to its lanes (edge_lane)."""
+    """Each queued pair's edge pairs on small hulls, dealt to its lanes (edge_lane), from the
+    better of its two walks (the last round's lanes merged)."""
     tid = wp.tid()
     n = wp.min(deep_count[0], deep_pair.shape[0])
     nlane = _lanes(n, lane_threads, max_lanes)
@@ -609,7 +638,12 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms,
                                deep_band[s], pair_in[cid], worldid)
       w, _ = start_of(a, b, ms, _queued_normal(deep_result, s), deep_along[s], scale)
-      best, index = edge_lane(a, b, ms, w, deep_walked[s], lane, nlane)
+      nround = _lanes(2 * n, lane_threads, max_lanes)
+      walked = _merge_lanes(last_best, last_index, 2 * s * nround, nround)
+      near = _merge_lanes(last_best, last_index, (2 * s + 1) * nround, nround)
+      if near[3] < walked[3]:
+        walked = near
+      best, index = edge_lane(a, b, ms, w, walked, lane, nlane)
       lane_best[s * nlane + lane] = best
       lane_index[s * nlane + lane] = index
 
@@ -737,7 +771,7 @@ def deep_kernels(mode: int) -> SimpleNamespace:
         contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
       )
 
-  return SimpleNamespace(faces=deep_faces, walk=deep_walk, edges=deep_edges, finish=deep_finish)
+  return SimpleNamespace(faces=deep_faces, round=deep_round, edges=deep_edges, finish=deep_finish)
 
 
 def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota: ContactQuota) -> None:
@@ -757,34 +791,47 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
             m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
             m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
             m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat]
-  wp.launch(
-    kernels.faces,
-    dim=lane_threads,
-    inputs=params + [c.mesh_support, b.count, b.pair, b.result, pairs.pair, pairs.pairid, pairs.pair_worldid,
-                     lane_threads, max_lanes],
-    outputs=[b.band, b.along, b.lane_best, b.lane_index],
-  )
-  wp.launch(
-    kernels.walk,
-    dim=nthread,
-    inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.lane_best, b.lane_index, nthread],
-    outputs=[b.walked],
-  )
-  wp.launch(
-    kernels.edges,
-    dim=lane_threads,
-    inputs=geometry + [b.walked, pairs.pair, pairs.pair_worldid, lane_threads, max_lanes],
-    outputs=[b.lane_best, b.lane_index],
-  )
-  wp.launch(
-    kernels.finish,
-    dim=nthread,
-    inputs=params[:-2] + [d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-      settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
-      opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
-      b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,
-      pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
-    ],
-    outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
-             narrow.patch_pos] + contact_outputs(d),
-  )
+
+  def check():
+    wp.launch(
+      kernels.faces,
+      dim=lane_threads,
+      inputs=params + [c.mesh_support, b.count, b.pair, b.result, pairs.pair, pairs.pairid, pairs.pair_worldid,
+                       lane_threads, max_lanes],
+      outputs=[b.band, b.along, b.lane_best, b.lane_index],
+    )
+    for rnd in range(EDGE_ROUNDS):
+      wp.launch(
+        kernels.round,
+        dim=lane_threads,
+        inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.lane_best, b.lane_index, rnd],
+        outputs=[b.walk_cur, b.walk_live, b.round_best, b.round_index],
+      )
+    last = (EDGE_ROUNDS - 1) % 2
+    wp.launch(
+      kernels.edges,
+      dim=lane_threads,
+      inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.round_best[last],
+                         b.round_index[last]],
+      outputs=[b.lane_best, b.lane_index],
+    )
+    wp.launch(
+      kernels.finish,
+      dim=nthread,
+      inputs=params[:-2] + [d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
+        settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
+        opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
+        b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,
+        pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
+      ],
+      outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
+               narrow.patch_pos] + contact_outputs(d),
+    )
+
+  # in a graph, the check's launches are skipped on the device when no answer was queued (most
+  # steps of most scenes), as MuJoCo Warp gates its own launches; outside one, a host-side test
+  # would cost a synchronization a step, more than the launches that exit at once
+  if m.opt.graph_conditional and d.nacon.device.is_capturing:
+    wp.capture_if(b.count, on_true=check)
+  else:
+    check()

@@ -296,3 +296,30 @@ def test_lanes_answer_as_one_thread(k, lanes):
     rows[nlane] = [getattr(sim.d.contact, f).numpy()[:n].copy() for f in ("dist", "pos", "frame", "geom", "worldid")]
   for one, laned in zip(rows[1], rows[lanes]):
     np.testing.assert_array_equal(one, laned)
+
+
+def test_captured_check_runs_only_when_queued():
+  """In a graph the check is gated on its queue (wp.capture_if): replayed with deep answers
+  queued, and then with none, the graph gives the contacts of plain calls, bit for bit."""
+  import warp as wp
+
+  mjm, qpos = _example(0)
+  sim = load(None, mjm=mjm, nworld=NPOSE, qpos=qpos)
+  ref = load(None, mjm=mjm, nworld=NPOSE, qpos=qpos)
+  collider = sf.install(mjm, sim.m, sf.Options(warm_start=False))
+  sf.collision(sim.m, sim.d)  # loads every kernel and makes the per-Data state before capturing
+  sf.collision(sim.m, ref.d)
+  with wp.ScopedCapture() as capture:
+    sf.collision(sim.m, sim.d)
+  apart = qpos.copy()
+  apart[:, 2] += 1.0  # B lifted clear of A in every world: nothing to check
+  for poses, deep in ((qpos, True), (apart, False)):
+    for s in (sim, ref):
+      set_qpos(s, poses)
+    wp.capture_launch(capture.graph)
+    sf.collision(sim.m, ref.d)
+    assert (collider.stats(ref.d)["deep_pairs"] > 0) == deep
+    n = int(ref.d.nacon.numpy()[0])
+    assert int(sim.d.nacon.numpy()[0]) == n
+    for field in ("dist", "pos", "frame", "geom", "worldid"):
+      np.testing.assert_array_equal(getattr(sim.d.contact, field).numpy()[:n], getattr(ref.d.contact, field).numpy()[:n])

@@ -33,6 +33,7 @@ from mujoco_warp._src.types import EnableBit
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import SleepState
 
+from mjx_supportfield import first_use
 from mjx_supportfield.aabb import update_aabbs
 from mjx_supportfield.routing import PairQueues
 from mjx_supportfield.routing import queue_pair
@@ -521,11 +522,18 @@ def _grid_of(kernel, m, d) -> dict:
   block size, and blocks capped at a few times what fills the GPU, each thread looping over
   several (world, pair) items (a robot's thousand pairs in 8192 worlds would otherwise start
   millions of threads that mostly test one box each and exit)."""
-  if not d.geom_xpos.device.is_cuda:
-    return {}
-  block, grid = wp.get_suggested_block_size(kernel, d.geom_xpos.device)
+  if not d.geom_xpos.device.is_cuda or first_use.planning():
+    return {}  # a plan's launches are skipped: the occupancy query would load the module
   block_dim = m.block_dim.nxn_broadphase
-  return {"block_dim": block_dim, "max_blocks": max(1, 8 * block * grid // block_dim)}
+  return {"block_dim": block_dim, "max_blocks": max(1, 8 * _filling_threads(kernel, d.geom_xpos.device) // block_dim)}
+
+
+@functools.lru_cache(maxsize=None)
+def _filling_threads(kernel, device) -> int:
+  """Threads that fill the GPU with ``kernel`` (CUDA's occupancy suggestion), asked once: the
+  query is a driver call, and the launch is made every step."""
+  block, grid = wp.get_suggested_block_size(kernel, device)
+  return block * grid
 
 
 def launch(c, m, d, b: Buffers, queues: PairQueues, awake_prev):

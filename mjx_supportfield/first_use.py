@@ -226,6 +226,12 @@ _watch = _Watch()
 active = False
 
 
+def planning() -> bool:
+  """Whether this thread runs a first collision as a plan (launches skipped, modules not
+  loaded): host code that would load a module for other reasons (occupancy queries) skips it."""
+  return getattr(_watch.planning, "plan", None) is not None
+
+
 def _set_active(value: bool):
   global active
   active = value

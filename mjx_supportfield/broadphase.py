@@ -528,12 +528,17 @@ def _grid_of(kernel, m, d) -> dict:
   return {"block_dim": block_dim, "max_blocks": max(1, 8 * _filling_threads(kernel, d.geom_xpos.device) // block_dim)}
 
 
-@functools.lru_cache(maxsize=None)
+_FILLING_THREADS = {}  # (kernel, device alias): threads; Warp's Device is not hashable
+
+
 def _filling_threads(kernel, device) -> int:
-  """Threads that fill the GPU with ``kernel`` (CUDA's occupancy suggestion), asked once: the
-  query is a driver call, and the launch is made every step."""
-  block, grid = wp.get_suggested_block_size(kernel, device)
-  return block * grid
+  """Threads that fill the GPU with ``kernel`` (CUDA's occupancy suggestion), asked once per
+  kernel and device: the query is a driver call, and the launch is made every step."""
+  key = (kernel, device.alias)
+  if key not in _FILLING_THREADS:
+    block, grid = wp.get_suggested_block_size(kernel, device)
+    _FILLING_THREADS[key] = block * grid
+  return _FILLING_THREADS[key]
 
 
 def launch(c, m, d, b: Buffers, queues: PairQueues, awake_prev):

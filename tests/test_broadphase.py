@@ -327,3 +327,25 @@ def test_queues_deal_out_the_pair_list(scene, broadphase):
     key = (int(worldid[cid]), *sorted(int(x) for x in pair[cid]))
     assert key not in touching, f"pair {key} was sifted out as apart, yet touches"
   sf.uninstall(sim.m)
+
+
+def test_occupancy_is_asked_once_per_kernel_and_device(monkeypatch):
+  """The listed-pairs launch on a GPU asks CUDA's occupancy once per kernel and device (a driver
+  call a step otherwise), keyed so that Warp's Device, which is not hashable, can be a key."""
+  import warp as wp
+
+  from mjx_supportfield import broadphase
+
+  calls = []
+
+  def suggested(kernel, device):
+    calls.append((kernel, device.alias))
+    return 128, 66
+
+  monkeypatch.setattr(broadphase.wp, "get_suggested_block_size", suggested)
+  monkeypatch.setattr(broadphase, "_FILLING_THREADS", {})
+  device = wp.get_device("cpu")  # any Device: the CUDA one is as unhashable
+  kernel = broadphase.update_aabbs
+  assert broadphase._filling_threads(kernel, device) == 128 * 66
+  assert broadphase._filling_threads(kernel, device) == 128 * 66
+  assert calls == [(kernel, "cpu")]

@@ -36,8 +36,7 @@ from mjx_supportfield.types import Shape
 # edge clipped on its own, Cyrus-Beck; each reference corner tested inside the incident
 # polygon) into a fixed set of scalar slots. Polygons are read from the model's arrays each time
 # a corner is needed: a thread-local polygon buffer lived in local memory on a GPU, and the
-# clipping ran several times slower than the tilts it replaces. The one exception is the
-# quadrilateral climb on a whole polygon (_polygon_quad), which reads each corner many times.
+# clipping ran several times slower than the tilts it replaces.
 
 MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's bound)
 # reference corners x incident corners above which a face pair goes to the tilts: the clipping
@@ -460,73 +459,49 @@ def _lift(a: float, b: float, plane: wp.vec4) -> wp.vec3:
   return wp.vec3(a, b, (plane[3] - a * plane[0] - b * plane[1]) / plane[2])
 
 
-# corners of the incident polygon the quadrilateral climb holds (face_pair's budget leaves an
-# incident polygon at most FACE_PAIR_BUDGET / 3 of them); any beyond are read in place
-QUAD_CORNERS = 32
-_vec_quad = wp.types.vector(length=QUAD_CORNERS, dtype=float)
-
-
 @wp.func
-def _quad_corner(xs: _vec_quad, ys: _vec_quad, inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat,
-                 shift: wp.vec3, start: int, k: int) -> wp.vec2:
-  """Corner start + k (cyclic) of the incident face seen along the reference normal: held by
-  _polygon_quad where k < QUAD_CORNERS, else read in place (the same value either way)."""
-  if k < QUAD_CORNERS:
-    return wp.vec2(xs[k], ys[k])
-  p = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + k) % inc.nvert)
-  return wp.vec2(p[0], p[1])
-
-
-@wp.func
-def _quad_area(xs: _vec_quad, ys: _vec_quad, inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat,
-               shift: wp.vec3, start: int, a: int, b: int, c: int, d: int) -> float:
+def _quad_area(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3, start: int, a: int,
+               b: int, c: int, d: int) -> float:
   """_area4 of the incident corners start + a, ... (cyclic) seen along the reference normal: on
   a plane, the area over the plane's cosine, so the same quadrilaterals win as in MuJoCo."""
-  pa = _quad_corner(xs, ys, inc_shape, inc, ms, to_face, shift, start, a)
-  pb = _quad_corner(xs, ys, inc_shape, inc, ms, to_face, shift, start, b)
-  pc = _quad_corner(xs, ys, inc_shape, inc, ms, to_face, shift, start, c)
-  pd = _quad_corner(xs, ys, inc_shape, inc, ms, to_face, shift, start, d)
-  return 0.5 * wp.abs(_cross2(pa - pc, pb - pd))
+  n = inc.nvert
+  pa = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + a) % n)
+  pb = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + b) % n)
+  pc = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + c) % n)
+  pd = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + d) % n)
+  return 0.5 * wp.abs(_cross2(wp.vec2(pa[0] - pc[0], pa[1] - pc[1]), wp.vec2(pb[0] - pd[0], pb[1] - pd[1])))
 
 
 @wp.func
 def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3, start: int
                   ) -> wp.vec4i:
-  """collision_gjk._polygon_quad on the incident face, from its corner ``start`` on: the corners
-  (counted from start) of a quadrilateral of locally largest area. A corner moves on only for
-  QUAD_TIE more area: on a round end (equal quadrilaterals) float32 rounding chose another one
-  every step, and a cylinder resting on its end crept. The climb reads each corner many times:
-  it reads them once into a local array, where a mesh corner read in place is a chain of
-  dependent loads (polygon, vertex index, vertex) a thread waits on each time."""
+  """collision_gjk._polygon_quad on the incident face read in place, from its corner ``start``
+  on: the corners (counted from start) of a quadrilateral of locally largest area. A corner
+  moves on only for QUAD_TIE more area: on a round end (equal quadrilaterals) float32 rounding
+  chose another one every step, and a cylinder resting on its end crept."""
   n = inc.nvert
-  xs = _vec_quad()
-  ys = _vec_quad()
-  for k in range(wp.min(n, QUAD_CORNERS)):
-    p = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + k) % n)
-    xs[k] = p[0]
-    ys[k] = p[1]
   b = int(1)
   c = int(2)
   d = int(3)
   res = wp.vec4i(0, b, c, d)
-  m = _quad_area(xs, ys, inc_shape, inc, ms, to_face, shift, start, 0, b, c, d)
+  m = _quad_area(inc_shape, inc, ms, to_face, shift, start, 0, b, c, d)
   for a in range(n):
     while True:
-      m_next = _quad_area(xs, ys, inc_shape, inc, ms, to_face, shift, start, a, b, c, (d + 1) % n)
+      m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, b, c, (d + 1) % n)
       if m_next <= m * (1.0 + QUAD_TIE):
         break
       m = m_next
       d = (d + 1) % n
       res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _quad_area(xs, ys, inc_shape, inc, ms, to_face, shift, start, a, b, (c + 1) % n, d)
+        m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, b, (c + 1) % n, d)
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
         c = (c + 1) % n
         res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _quad_area(xs, ys, inc_shape, inc, ms, to_face, shift, start, a, (b + 1) % n, c, d)
+        m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, (b + 1) % n, c, d)
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next

@@ -25,10 +25,11 @@ For each scene:
    largest distance), worlds with a non-finite qpos, free bodies whose centre of mass went inside
    a static box or under the floor or terrain (fall-through), and a figure of the task (can
    lifted, objects in the bin, ...).
-5. The rollouts' penetration apart from their trajectories: each world's deepest and their median
-   over worlds (the deepest of all is one rare impact's: an object toppled or pushed off the table
-   in one world), and each implementation's deepest state replayed by MuJoCo C from the rollout's
-   own states (qpos, qvel) ``REPLAY_STEPS`` before it. Where the replay sinks as deep, the depth
+5. The rollouts' penetration apart from their trajectories: each world's deepest (and its geom
+   pair), their median, 90th percentile and largest over worlds (the largest is one rare
+   impact's: an object toppled or pushed off the table in one world), the worlds that lost an
+   object (off the table, out of the bin), and each implementation's deepest state replayed by
+   MuJoCo C from the rollout's own states (qpos, qvel) ``REPLAY_STEPS`` before it. Where the replay sinks as deep, the depth
    came from how hard the bodies met, not from the implementation's contacts.
 
 Writes a JSON (default ``benchmarks/results/<date>-cpu-fidelity.json``) and prints markdown
@@ -141,6 +142,7 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
   deepest, deepest_at = 0.0, None
   per_state = []
   per_world = np.zeros(nworld)
+  per_world_pair = [""] * nworld
   fell = set()
   for step in steps:
     for w in range(nworld):
@@ -150,7 +152,8 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
         continue
       depth, pair = deepest_penetration(mjm, mjd, q)
       per_state.append(depth)
-      per_world[w] = max(per_world[w], depth)
+      if depth > per_world[w]:
+        per_world[w], per_world_pair[w] = depth, pair
       if depth > deepest:
         deepest, deepest_at = depth, {"step": step, "world": w, "pair": pair}
       fell |= {(w, mjm.body(b).name) for b in fallen_through(mjm, mjd, static)}
@@ -169,6 +172,7 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
     "max_penetration": deepest,
     "max_penetration_at": deepest_at,
     "max_penetration_per_world": per_world.tolist(),
+    "max_penetration_pair_per_world": per_world_pair,
     "max_penetration_median_world": float(np.median(per_world)),
     "mean_deepest_penetration": float(np.mean(per_state)) if per_state else 0.0,
     "nan_worlds": len(nan_worlds),

@@ -29,8 +29,9 @@ For each scene:
    pair), their median, 90th percentile and largest over worlds (the largest is one rare
    impact's: an object toppled or pushed off the table in one world), the worlds that lost an
    object (off the table, out of the bin), and each implementation's deepest state replayed by
-   MuJoCo C from the rollout's own states (qpos, qvel) ``REPLAY_STEPS`` before it. Where the replay sinks as deep, the depth
-   came from how hard the bodies met, not from the implementation's contacts.
+   MuJoCo C from the rollout's own states (qpos, qvel) ``REPLAY_STEPS`` before it. Where the
+   replay sinks as deep, the depth came from how hard the bodies met, not from the
+   implementation's contacts.
 
 Writes a JSON (default ``benchmarks/results/<date>-cpu-fidelity.json``) and prints markdown
 tables (docs/fidelity.md holds the committed run's).
@@ -415,7 +416,8 @@ def _spread_rows(results: dict, impls: list) -> list[str]:
   results written before world_spread have the median only."""
   lines = [
     "",
-    "| scene | rolled out by | deepest per world, median mm | 90th percentile mm | max mm | worlds that lost an object |",
+    "| scene | rolled out by | deepest per world, median mm | 90th percentile mm | max mm | "
+    "worlds that lost an object |",
     "|---|---|---|---|---|---|",
   ]
   names = {"mujoco": "MuJoCo C", "plugin": "plugin", "plugin_gjk": "plugin gjk", "stock": "stock"}

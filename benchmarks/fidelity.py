@@ -25,11 +25,13 @@ For each scene:
    largest distance), worlds with a non-finite qpos, free bodies whose centre of mass went inside
    a static box or under the floor or terrain (fall-through), and a figure of the task (can
    lifted, objects in the bin, ...).
-5. The rollouts' penetration apart from their trajectories: each world's deepest and their median
-   over worlds (the deepest of all is one rare impact's: an object toppled or pushed off the table
-   in one world), and each implementation's deepest state replayed by MuJoCo C from the rollout's
-   own states (qpos, qvel) ``REPLAY_STEPS`` before it. Where the replay sinks as deep, the depth
-   came from how hard the bodies met, not from the implementation's contacts.
+5. The rollouts' penetration apart from their trajectories: each world's deepest (and its geom
+   pair), their median, 90th percentile and largest over worlds (the largest is one rare
+   impact's: an object toppled or pushed off the table in one world), the worlds that lost an
+   object (off the table, out of the bin), and each implementation's deepest state replayed by
+   MuJoCo C from the rollout's own states (qpos, qvel) ``REPLAY_STEPS`` before it. Where the
+   replay sinks as deep, the depth came from how hard the bodies met, not from the
+   implementation's contacts.
 
 Writes a JSON (default ``benchmarks/results/<date>-cpu-fidelity.json``) and prints markdown
 tables (docs/fidelity.md holds the committed run's).
@@ -141,6 +143,7 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
   deepest, deepest_at = 0.0, None
   per_state = []
   per_world = np.zeros(nworld)
+  per_world_pair = [""] * nworld
   fell = set()
   for step in steps:
     for w in range(nworld):
@@ -150,7 +153,8 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
         continue
       depth, pair = deepest_penetration(mjm, mjd, q)
       per_state.append(depth)
-      per_world[w] = max(per_world[w], depth)
+      if depth > per_world[w]:
+        per_world[w], per_world_pair[w] = depth, pair
       if depth > deepest:
         deepest, deepest_at = depth, {"step": step, "world": w, "pair": pair}
       fell |= {(w, mjm.body(b).name) for b in fallen_through(mjm, mjd, static)}
@@ -169,6 +173,7 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
     "max_penetration": deepest,
     "max_penetration_at": deepest_at,
     "max_penetration_per_world": per_world.tolist(),
+    "max_penetration_pair_per_world": per_world_pair,
     "max_penetration_median_world": float(np.median(per_world)),
     "mean_deepest_penetration": float(np.mean(per_state)) if per_state else 0.0,
     "nan_worlds": len(nan_worlds),
@@ -176,6 +181,32 @@ def judge_rollout(scene: Scene, mjm: mujoco.MjModel, records: dict, reference_fi
     "final_position_error_median": float(np.median(errors)) if errors else None,
     "final_position_error_max": float(np.max(errors)) if errors else None,
     "outcome": outcomes,
+  }
+
+
+def objects_lost(outcome: dict) -> Optional[bool]:
+  """Whether a world's task figure lost an object: one off the table (arm_sweep: onto the floor)
+  or out of the bin; None for scenes without such a count."""
+  for kept in ("objects_on_table", "objects_in_bin"):
+    if kept in outcome:
+      return outcome[kept] < outcome["objects"]
+  return None
+
+
+def world_spread(judged: dict) -> dict:
+  """The spread over worlds of a judge_rollout result: each world's deepest penetration's median,
+  90th percentile and largest, and how many worlds lost an object (objects_lost; None where the
+  scene counts none). The median alone hides the rare impact that sets the largest: an object
+  knocked off the table in a few worlds."""
+  per_world = np.asarray(judged["max_penetration_per_world"], dtype=float)
+  if per_world.size == 0:
+    raise ValueError("world_spread: judge_rollout result without worlds (max_penetration_per_world empty)")
+  lost = [objects_lost(o) for o in judged["outcome"]]
+  return {
+    "max_penetration_median_world": float(np.median(per_world)),
+    "max_penetration_p90_world": float(np.percentile(per_world, 90)),
+    "max_penetration_max_world": float(per_world.max()),
+    "worlds_object_lost": None if None in lost or not lost else int(sum(lost)),
   }
 
 
@@ -246,7 +277,9 @@ def run_scene(name: str, nstates: int, nworld: int, rollout: bool) -> dict:
   c_qpos = np.stack([rollout_mujoco(scene, mjm, q, nstep)["qpos"] for q in starts], axis=1)  # (step, world, nq)
   c_records = {step: c_qpos[step] for step in sorted(set(range(0, nstep + 1, RECORD_EVERY)) | {nstep})}
   finals = c_qpos[-1]
-  out["rollouts"] = {"worlds": nworld, "record_every": RECORD_EVERY, "mujoco": judge_rollout(scene, mjm, c_records, finals)}
+  c_judged = judge_rollout(scene, mjm, c_records, finals)
+  c_judged.update(world_spread(c_judged))
+  out["rollouts"] = {"worlds": nworld, "record_every": RECORD_EVERY, "mujoco": c_judged}
   nconmax = max(64, 4 * int(ref["ncon"].max()))
   njmax = max(256, 4 * ref["max_nefc"])
   for impl, opts in IMPLS.items():
@@ -256,6 +289,7 @@ def run_scene(name: str, nstates: int, nworld: int, rollout: bool) -> dict:
     judged = judge_rollout(scene, mjm, run["records"], finals)
     judged.update({"seconds": run["seconds"], "max_nacon": run["max_nacon"], "naconmax": run["naconmax"],
                    "overflow": run["overflow"]})
+    judged.update(world_spread(judged))
     judged["deepest_replayed"] = replay_deepest(scene, mjm, run, judged, nstep)
     out["rollouts"][impl] = judged
     _log(f"{name}: {impl} rollout done in {time.time() - t:.0f} s: max penetration "
@@ -344,6 +378,7 @@ def tables(results: dict) -> str:
       task = " / ".join(_task(ro[i]["outcome"]) for i in ["mujoco"] + impls)
       lines.append(f"| {name} | {pen} | {err} | {nan} | {fell} | {task} |")
     lines += _impact_rows(results, impls)
+    lines += _spread_rows(results, impls)
   return "\n".join(lines)
 
 
@@ -373,6 +408,29 @@ def _impact_rows(results: dict, impls: list) -> list[str]:
     median = " / ".join(_mm(ro[i].get("max_penetration_median_world")) for i in ["mujoco"] + impls)
     replays = " / ".join(_replayed(ro[i]) for i in impls)
     lines.append(f"| {name} | {median} | {replays} |")
+  return lines
+
+
+def _spread_rows(results: dict, impls: list) -> list[str]:
+  """Each world's deepest penetration over the worlds (world_spread), a row an implementation;
+  results written before world_spread have the median only."""
+  lines = [
+    "",
+    "| scene | rolled out by | deepest per world, median mm | 90th percentile mm | max mm | "
+    "worlds that lost an object |",
+    "|---|---|---|---|---|---|",
+  ]
+  names = {"mujoco": "MuJoCo C", "plugin": "plugin", "plugin_gjk": "plugin gjk", "stock": "stock"}
+  for name, r in results.items():
+    if "rollouts" not in r:
+      continue
+    ro = r["rollouts"]
+    for i in ["mujoco"] + impls:
+      lost = ro[i].get("worlds_object_lost")
+      lost = "–" if lost is None else f"{lost} of {ro['worlds']}"
+      lines.append(f"| {name} | {names.get(i, i)} | {_mm(ro[i].get('max_penetration_median_world'))} | "
+                   f"{_mm(ro[i].get('max_penetration_p90_world'))} | {_mm(ro[i].get('max_penetration_max_world'))} | "
+                   f"{lost} |")
   return lines
 
 

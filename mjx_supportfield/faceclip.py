@@ -612,7 +612,8 @@ def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, f
   ends of its piece within the side planes, those within the band (face frame). A tilted face's
   corner with its two edges (nvert 3): both edges so, the corner once (up to max_contacts, at
   least 2); the corner alone (nvert 1): itself, where it lies within the side planes and the
-  band."""
+  band, else nothing (clip_faces then leaves the pair to the tilts, which keep its first
+  contact)."""
   mf = Manifold()
   mf.status = CLIPPED
   mf.n = 0
@@ -625,6 +626,10 @@ def _segment_manifold(ref_shape: Shape, ref: Face, inc: Face, ms: MeshSupport, f
   p = wp.quat_rotate(to_face, inc.p0) + shift
   for e in range(wp.where(inc.nvert == 3, 2, 1)):
     q = wp.quat_rotate(to_face, wp.where(e == 0, inc.p1, inc.p2)) + shift
+    if inc.nvert == 1:
+      # the corner alone is a segment of no length, kept where it lies within the side planes:
+      # where its edge enters them is a point of neither MuJoCo's contact nor the corner
+      q = p
     t = _clip_segment(ref_shape, ref, ms, frame, wr, wp.vec2(p[0], p[1]), wp.vec2(q[0], q[1]), slack)
     if t[0] <= t[1]:
       # the second edge starts at the corner the first gave already

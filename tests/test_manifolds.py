@@ -450,24 +450,36 @@ def test_polygon_end_on_face_gets_mujocos_quadrilateral(narrowphase, sides, yaw)
   np.testing.assert_allclose(c.dist, -0.001, atol=2e-5)
 
 
-def _chamfered_carton(tilt_x: float, tilt_y: float) -> str:
+def _chamfered_carton(tilt_x: float, tilt_y: float, depth: float = 8e-4, past_rim=None, margin: float = 0.0) -> str:
   """A carton (a box 40 x 40 x 80 mm whose four upright edges are chamfered 1.3 mm, a mesh, as
   robosuite's milk) turned tilt_x degrees about x, then tilt_y about its own y, its lowest corner
-  0.8 mm into a box's top face."""
-  a, c, h, depth = 0.02, 0.0013, 0.04, 8e-4
+  ``depth`` into a box's top face (negative: above it). past_rim (dx, dy, gap): the box moved
+  along x or y so that its edge lies ``gap`` short of the lowest corner toward (dx, dy); margin:
+  the box's."""
+  a, c, h = 0.02, 0.0013, 0.04
   octagon = [(a - c, a), (c - a, a), (-a, a - c), (-a, c - a), (c - a, -a), (a - c, -a), (a, c - a), (a, a - c)]
   corners = np.array([[x, y, z] for z in (-h, h) for x, y in octagon])
   quat = np.zeros(4)
   mujoco.mju_euler2Quat(quat, np.radians([tilt_x, tilt_y, 0.0]), "XYZ")
   rot = np.zeros(9)
   mujoco.mju_quat2Mat(rot, quat)
-  lowest = (corners @ rot.reshape(3, 3).T)[:, 2].min()
+  world = corners @ rot.reshape(3, 3).T
+  lowest = world[:, 2].min()
+  table = 'pos="0 0 -.05"'
+  if past_rim is not None:
+    dx, dy, gap = past_rim
+    corner = world[world[:, 2].argmin(), :2]
+    x = corner[0] - dx * (0.1 + gap) if dx else corner[0]
+    y = corner[1] - dy * (0.1 + gap) if dy else corner[1]
+    table = f'pos="{x:.9f} {y:.9f} -.05"'
+  if margin:
+    table += f' margin="{margin}"'
   vertex = " ".join(f"{x} {y} {z}" for x, y, z in corners)
   return f"""
 <mujoco>
   <asset><mesh name="carton" vertex="{vertex}"/></asset>
   <worldbody>
-    <geom name="table" type="box" pos="0 0 -.05" size=".1 .1 .05"/>
+    <geom name="table" type="box" {table} size=".1 .1 .05"/>
     <body pos="0 0 {-lowest - depth:.9f}" quat="{' '.join(f'{q:.12f}' for q in quat)}">
       <freejoint/><geom name="carton" type="mesh" mesh="carton"/>
     </body>
@@ -494,3 +506,22 @@ def test_tilted_face_touches_by_its_edge_or_corner(narrowphase, tilt, count):
   assert c.n == count, f"{c.n} contacts, MuJoCo C {count}"
   _match(c.pos.astype(np.float64), np.array([r.pos for r in ref]), 5e-5)
   np.testing.assert_allclose(np.sort(c.dist), np.sort([r.dist for r in ref]), atol=2e-5)
+
+
+@pytest.mark.parametrize("narrowphase", NARROWPHASES)
+@pytest.mark.parametrize("toward", [(-1, 0), (0, -1)])
+def test_lone_corner_past_the_rim_gives_mujocos_contact(narrowphase, toward):
+  """The carton turned about x and y (its lowest corner alone faces the table) hovering 1 mm over
+  a table with a 2 mm margin, that corner 0.05 mm past the table's edge: the contact normal lies
+  within MuJoCo's face tolerance of the table's, yet the corner is off the face. MuJoCo C writes
+  its one contact (the closest points'); the plugin wrote the point where the corner's edge
+  enters the face, up to 0.06 mm beside it, a point on neither shape's contact."""
+  sim = load(_chamfered_carton(22.5, 10.0, depth=-1e-3, past_rim=(*toward, 5e-5), margin=2e-3))
+  sf.install(sim.mjm, sim.m, sf.Options(narrowphase=narrowphase))
+  sf.collision(sim.m, sim.d)
+  c = contacts(sim.d, 0)
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  assert len(ref) == 1, f"MuJoCo C now gives {len(ref)} contacts"
+  assert c.n == 1, f"{c.n} contacts, MuJoCo C 1"
+  _match(c.pos.astype(np.float64), np.array([r.pos for r in ref]), 2e-5)
+  np.testing.assert_allclose(c.dist, [r.dist for r in ref], atol=2e-5)

@@ -818,7 +818,7 @@ def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota:
     wp.launch(
       kernels.finish,
       dim=nthread,
-      inputs=params[:-2] + [d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
+      inputs=params + [d.naconmax, c.mesh_support,
         settings_of(opt), opt.max_contacts_per_pair if opt.multi_contact else 1,
         opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
         b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,

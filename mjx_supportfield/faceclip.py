@@ -19,7 +19,6 @@ from mujoco_warp._src.types import GeomType
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.multicontact import ON_FACE_TOL
 from mjx_supportfield.multicontact import _polygon_toward
-from mjx_supportfield.support import hull_point
 from mjx_supportfield.support import support_funcs
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
@@ -92,6 +91,7 @@ class Face:
   kind: int
   index: int
   nvert: int
+  adr: int  # a hull polygon's first corner in MeshSupport.poly_pos
   normal: wp.vec3
   p0: wp.vec3
   p1: wp.vec3
@@ -172,6 +172,7 @@ def _no_face() -> Face:
   f.kind = FACE_NONE
   f.index = 0
   f.nvert = 0
+  f.adr = 0
   f.normal = wp.vec3(0.0)
   f.p0 = wp.vec3(0.0)
   f.p1 = wp.vec3(0.0)
@@ -202,7 +203,7 @@ def _corner(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3:
                    wp.where((code & 4) != 0, s.size[2], -s.size[2]))
   if f.kind == FACE_MESH:
     # MuJoCo's hull polygons run counter-clockwise; collision_gjk._mesh_face reverses them
-    return hull_point(ms, s.mesh, ms.poly_vert[ms.poly_vert_adr[f.index] + f.nvert - 1 - k])
+    return ms.poly_pos[f.adr + f.nvert - 1 - k]
   if f.kind == FACE_DISK:
     # MuJoCo's 16-gon (collision_gjk._cylinder_face): its corners are where MuJoCo C's contacts lie
     sign = wp.where(f.index != 0, -1.0, 1.0)
@@ -460,15 +461,9 @@ def _lift(a: float, b: float, plane: wp.vec4) -> wp.vec3:
 
 
 @wp.func
-def _quad_area(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3, start: int, a: int,
-               b: int, c: int, d: int) -> float:
-  """_area4 of the incident corners start + a, ... (cyclic) seen along the reference normal: on
-  a plane, the area over the plane's cosine, so the same quadrilaterals win as in MuJoCo."""
-  n = inc.nvert
-  pa = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + a) % n)
-  pb = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + b) % n)
-  pc = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + c) % n)
-  pd = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + d) % n)
+def _quad_area(pa: wp.vec3, pb: wp.vec3, pc: wp.vec3, pd: wp.vec3) -> float:
+  """_area4 of incident corners seen along the reference normal (face frame): on a plane, the
+  area over the plane's cosine, so the same quadrilaterals win as in MuJoCo."""
   return 0.5 * wp.abs(_cross2(wp.vec2(pa[0] - pc[0], pa[1] - pc[1]), wp.vec2(pb[0] - pd[0], pb[1] - pd[1])))
 
 
@@ -478,41 +473,58 @@ def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat
   """collision_gjk._polygon_quad on the incident face read in place, from its corner ``start``
   on: the corners (counted from start) of a quadrilateral of locally largest area. A corner
   moves on only for QUAD_TIE more area: on a round end (equal quadrilaterals) float32 rounding
-  chose another one every step, and a cylinder resting on its end crept."""
+  chose another one every step, and a cylinder resting on its end crept. The four corners are
+  held as they climb, so that each step reads only the one that moves (a local array of them
+  would sit in local memory on a GPU)."""
   n = inc.nvert
   b = int(1)
   c = int(2)
   d = int(3)
   res = wp.vec4i(0, b, c, d)
-  m = _quad_area(inc_shape, inc, ms, to_face, shift, start, 0, b, c, d)
+  pa = _inc_corner(inc_shape, inc, ms, to_face, shift, start % n)
+  pb = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + b) % n)
+  pc = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + c) % n)
+  pd = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + d) % n)
+  m = _quad_area(pa, pb, pc, pd)
   for a in range(n):
+    if a > 0:
+      pa = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + a) % n)
     while True:
-      m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, b, c, (d + 1) % n)
+      p_next = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + (d + 1) % n) % n)
+      m_next = _quad_area(pa, pb, pc, p_next)
       if m_next <= m * (1.0 + QUAD_TIE):
         break
       m = m_next
       d = (d + 1) % n
+      pd = p_next
       res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, b, (c + 1) % n, d)
+        p_next = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + (c + 1) % n) % n)
+        m_next = _quad_area(pa, pb, p_next, pd)
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
         c = (c + 1) % n
+        pc = p_next
         res = wp.vec4i(a, b, c, d)
       while True:
-        m_next = _quad_area(inc_shape, inc, ms, to_face, shift, start, a, (b + 1) % n, c, d)
+        p_next = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + (b + 1) % n) % n)
+        m_next = _quad_area(pa, p_next, pc, pd)
         if m_next <= m * (1.0 + QUAD_TIE):
           break
         m = m_next
         b = (b + 1) % n
+        pb = p_next
         res = wp.vec4i(a, b, c, d)
     if b == a:
       b = (b + 1) % n
+      pb = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + b) % n)
       if c == b:
         c = (c + 1) % n
+        pc = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + c) % n)
         if d == c:
           d = (d + 1) % n
+          pd = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + d) % n)
   return res
 
 
@@ -720,6 +732,7 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
         f.kind = FACE_MESH
         f.index = poly
         f.nvert = ms.poly_vert_num[poly]
+        f.adr = ms.poly_vert_adr[poly]
     f.normal = s.rot @ local
     return f
 
@@ -766,6 +779,7 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
       f.nvert = DISK_CORNERS
     elif kind == FACE_MESH:
       f.nvert = ms.poly_vert_num[f.index]
+      f.adr = ms.poly_vert_adr[f.index]
     local = _local_normal(ms, f)
     f.normal = s.rot @ local
     return f

@@ -192,18 +192,18 @@ def _polygon_toward(ms: MeshSupport, mesh: int, vertex: int, u: wp.vec3) -> int:
 
 
 @wp.func
-def _in_polygon(ms: MeshSupport, mesh: int, poly: int, x: wp.vec3, tol: float) -> bool:
+def _in_polygon(ms: MeshSupport, poly: int, x: wp.vec3, tol: float) -> bool:
   """Whether point x (mesh frame, in the polygon's plane) lies inside hull polygon ``poly``,
   up to tol."""
   normal = ms.poly_normal[poly]
   adr = ms.poly_vert_adr[poly]
   nvert = ms.poly_vert_num[poly]
-  prev = hull_point(ms, mesh, ms.poly_vert[adr + nvert - 1])
+  prev = ms.poly_pos[adr + nvert - 1]
   # inside a convex polygon, x is on the same side of every edge, whatever the winding
   left = bool(False)
   right = bool(False)
   for j in range(nvert):
-    cur = hull_point(ms, mesh, ms.poly_vert[adr + j])
+    cur = ms.poly_pos[adr + j]
     e = cur - prev
     side = wp.dot(wp.cross(e, x - prev), normal)
     slack = tol * wp.length(e)
@@ -227,7 +227,7 @@ def _in_face(s: Shape, ms: MeshSupport, face: int, x: wp.vec3, tol: float) -> bo
   if s.gtype == GeomType.CYLINDER:
     return wp.length(wp.vec2(local[0], local[1])) <= s.size[0] + grow
   if s.gtype == GeomType.MESH:
-    return _in_polygon(ms, s.mesh, face, local - s.inflate * ms.poly_normal[face], tol)
+    return _in_polygon(ms, face, local - s.inflate * ms.poly_normal[face], tol)
   return False
 
 

@@ -107,8 +107,9 @@ def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
 
 
 def hull_polygons(mjm: mujoco.MjModel, hull_adr: np.ndarray, hull_num: np.ndarray, hull_vert: np.ndarray) -> dict:
-  """MuJoCo's hull polygons re-indexed for MeshSupport: corners as local hull indices, and per
-  hull vertex (global hull index) the polygons around it. A polygon with a corner that is not a
+  """MuJoCo's hull polygons re-indexed for MeshSupport: corners as global hull indices
+  (``poly_hull``, which _set_polygons turns into positions), and per hull vertex (global hull
+  index) the polygons around it. A polygon with a corner that is not a
   hull vertex gets no corners (never used)."""
   nmesh = len(hull_num)
   npoly = np.asarray(mjm.mesh_polynum, np.int64)[:nmesh]
@@ -128,15 +129,15 @@ def hull_polygons(mjm: mujoco.MjModel, hull_adr: np.ndarray, hull_num: np.ndarra
   corners = hull_index[vertadr[mesh_of_poly[corner_poly]] + np.asarray(mjm.mesh_polyvert, np.int64)[corner]]
   bad = np.zeros(len(vert_num), bool)
   bad[corner_poly[corners < 0]] = True
-  poly_vert = np.zeros(max(len(np.asarray(mjm.mesh_polyvert)), 1), np.int32)
-  poly_vert[corner] = np.maximum(corners, 0)
+  poly_hull = np.zeros(max(len(np.asarray(mjm.mesh_polyvert)), 1), np.int32)
+  poly_hull[corner] = np.asarray(hull_adr, np.int64)[mesh_of_poly[corner_poly]] + np.maximum(corners, 0)
   around = vertadr[mesh_of_hull] + hull_vert  # each hull vertex as a global mesh vertex
   return {
     "poly_adr": np.asarray(mjm.mesh_polyadr, np.int32)[:nmesh],
     "poly_normal": np.asarray(mjm.mesh_polynormal, np.float32).reshape(-1, 3),
     "poly_vert_adr": vert_adr.astype(np.int32),
     "poly_vert_num": np.where(bad | (vert_num < 3), 0, vert_num).astype(np.int32),
-    "poly_vert": poly_vert,
+    "poly_hull": poly_hull,
     "vert_poly_adr": np.asarray(mjm.mesh_polymapadr, np.int32)[around],
     "vert_poly_num": np.asarray(mjm.mesh_polymapnum, np.int32)[around],
     "vert_poly": np.asarray(mjm.mesh_polymap, np.int32),
@@ -580,7 +581,7 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.plane_adr = arr(hd.plane_adr if has_planes else np.zeros(nmesh, np.int32))
   ms.plane_num = arr(hd.plane_num if has_planes else np.zeros(nmesh, np.int32))
   ms.plane = arr(hd.plane if has_planes else np.zeros((1, 4), np.float32), wp.vec4)
-  _set_polygons(ms, hd, arr)
+  _set_polygons(ms, hd, ms.hull_pos.numpy(), arr)
   extremes = wp.array(extreme_vertices(hd, host_vert, vertadr), dtype=int, device=device)
   if adaptive:
     field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)
@@ -593,15 +594,18 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   return ms
 
 
-def _set_polygons(ms: MeshSupport, hd: HullData, arr) -> None:
-  """MeshSupport's polygon arrays from ``hd.polygons`` (empty: no mesh has polygons)."""
-  poly = hd.polygons
+def _set_polygons(ms: MeshSupport, hd: HullData, hull_pos: np.ndarray, arr) -> None:
+  """MeshSupport's polygon arrays from ``hd.polygons`` (empty: no mesh has polygons), the
+  corners' positions copied out of ``hull_pos`` (host copy of ms.hull_pos)."""
+  poly = dict(hd.polygons)
   nmesh, nhull = len(hd.hull_num), len(hd.hull_vert)
   if not poly:  # one unused entry where an array would be empty; no vertex lists a polygon
     poly = {"poly_adr": np.zeros(nmesh, np.int32), "poly_normal": np.zeros((1, 3), np.float32),
             "poly_vert_adr": np.zeros(1, np.int32), "poly_vert_num": np.zeros(1, np.int32),
-            "poly_vert": np.zeros(1, np.int32), "vert_poly_adr": np.zeros(nhull, np.int32),
+            "poly_hull": np.zeros(1, np.int32), "vert_poly_adr": np.zeros(nhull, np.int32),
             "vert_poly_num": np.zeros(nhull, np.int32), "vert_poly": np.zeros(1, np.int32)}
+  poly_hull = poly.pop("poly_hull")
+  ms.poly_pos = arr(hull_pos[poly_hull] if len(hull_pos) else np.zeros((len(poly_hull), 3), np.float32), wp.vec3)
   for name, values in poly.items():
     setattr(ms, name, arr(values, wp.vec3 if name == "poly_normal" else int))
 

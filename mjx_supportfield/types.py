@@ -66,7 +66,9 @@ class MeshSupport:
   poly_normal: wp.array(dtype=wp.vec3)  # per polygon: outward unit normal (mesh frame)
   poly_vert_adr: wp.array(dtype=int)  # per polygon: first corner in poly_vert
   poly_vert_num: wp.array(dtype=int)  # per polygon: corners (0: unusable)
-  poly_vert: wp.array(dtype=int)  # corners in order, as local hull indices
+  # corners in order, their positions (mesh frame): a face's corner is one read, as hull_pos's
+  # support point is, where a hull index would be a chain of dependent loads
+  poly_pos: wp.array(dtype=wp.vec3)
   vert_poly_adr: wp.array(dtype=int)  # per hull vertex: first entry in vert_poly
   vert_poly_num: wp.array(dtype=int)  # per hull vertex: polygons it is a corner of
   vert_poly: wp.array(dtype=int)  # polygons (indices within the mesh) around each hull vertex

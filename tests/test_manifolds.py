@@ -30,6 +30,7 @@ import mjx_supportfield as sf
 from conftest import angle_deg
 from conftest import contacts
 from conftest import load
+from conftest import on_gpu
 
 H = 0.05  # half-size of every cube
 CUBE = " ".join(f"{x} {y} {z}" for x in (-H, H) for y in (-H, H) for z in (-H, H))
@@ -565,8 +566,11 @@ def _hovering_box_corner_scene(height: float, past_rim: float, turn_deg: float, 
 """
 
 
-@pytest.mark.xfail(strict=True, reason="known: a corner hovering within a margin just past a turned table's edge gets "
-                   "MPR's contact about 50 mm along the edge from MuJoCo C's, off the box")
+# the defect follows the CPU's float32 rounding: on a GPU the same refinement lands on C's point,
+# so there the test must pass
+@pytest.mark.xfail(condition=not on_gpu(), strict=True,
+                   reason="known: on the CPU a corner hovering within a margin just past a turned table's edge "
+                   "gets MPR's contact about 50 mm along the edge from MuJoCo C's, off the box")
 def test_corner_hovering_in_margin_past_the_rim_gets_mujocos_point():
   sim = load(_hovering_box_corner_scene(0.001, 0.00003, 50.0, 0.002))
   ref = np.array([c.pos for c in sim.mjd.contact[: sim.mjd.ncon]])

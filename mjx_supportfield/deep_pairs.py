@@ -447,8 +447,9 @@ def _queued_normal(deep_result: wp.array(dtype=wp.vec4), s: int) -> wp.vec3:
 def deep_kernels(mode: int) -> SimpleNamespace:
   """The check's kernels for support mode ``mode``, in that mode's module (types.mode_module), in
   launch order: ``faces`` (lanes: the face normals), ``round`` (lanes, EDGE_ROUNDS launches: the
-  edge-edge walks from the best face and from MPR's normal, a round each), ``edges`` (lanes: every edge pair of small hulls) and ``finish`` (a pair: MPR
-  rerun along the least overlap, the answer queued for multi-contact or written)."""
+  edge-edge walks from the best face and from MPR's normal, a round each), ``edges`` (lanes:
+  every edge pair of small hulls) and ``finish`` (a pair: MPR rerun along the least overlap, the
+  answer queued for multi-contact or written)."""
   funcs = deep_funcs(mode)
   overlap_along, start_of, face_lane = funcs.overlap_along, funcs.start_of, funcs.face_lane
   round_lane, edge_lane, rerun_along = funcs.round_lane, funcs.edge_lane, funcs.rerun_along

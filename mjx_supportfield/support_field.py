@@ -109,8 +109,8 @@ def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
 def hull_polygons(mjm: mujoco.MjModel, hull_adr: np.ndarray, hull_num: np.ndarray, hull_vert: np.ndarray) -> dict:
   """MuJoCo's hull polygons re-indexed for MeshSupport: corners as global hull indices
   (``poly_hull``, which _set_polygons turns into positions), and per hull vertex (global hull
-  index) the polygons around it. A polygon with a corner that is not a
-  hull vertex gets no corners (never used)."""
+  index) the polygons around it. A polygon with a corner that is not a hull vertex gets no
+  corners (never used)."""
   nmesh = len(hull_num)
   npoly = np.asarray(mjm.mesh_polynum, np.int64)[:nmesh]
   if nmesh == 0 or npoly.sum() == 0:
@@ -572,7 +572,8 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.hull_vert = arr(hd.hull_vert)
   host_vert = vert.numpy()
   mesh_of_hull = np.repeat(np.arange(len(hd.hull_num)), hd.hull_num)
-  ms.hull_pos = arr(host_vert[vertadr[mesh_of_hull] + hd.hull_vert].reshape(-1, 3), wp.vec3)
+  hull_pos = host_vert[vertadr[mesh_of_hull] + hd.hull_vert].reshape(-1, 3)
+  ms.hull_pos = arr(hull_pos, wp.vec3)
   ms.nbr_adr = arr(hd.nbr_adr)
   ms.nbr_num = arr(hd.nbr_num)
   ms.nbr = arr(hd.nbr)
@@ -581,7 +582,7 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.plane_adr = arr(hd.plane_adr if has_planes else np.zeros(nmesh, np.int32))
   ms.plane_num = arr(hd.plane_num if has_planes else np.zeros(nmesh, np.int32))
   ms.plane = arr(hd.plane if has_planes else np.zeros((1, 4), np.float32), wp.vec4)
-  _set_polygons(ms, hd, ms.hull_pos.numpy(), arr)
+  _set_polygons(ms, hd, hull_pos, arr)
   extremes = wp.array(extreme_vertices(hd, host_vert, vertadr), dtype=int, device=device)
   if adaptive:
     field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)
@@ -596,7 +597,7 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
 
 def _set_polygons(ms: MeshSupport, hd: HullData, hull_pos: np.ndarray, arr) -> None:
   """MeshSupport's polygon arrays from ``hd.polygons`` (empty: no mesh has polygons), the
-  corners' positions copied out of ``hull_pos`` (host copy of ms.hull_pos)."""
+  corners' positions copied out of ``hull_pos`` (ms.hull_pos's values, on the host)."""
   poly = dict(hd.polygons)
   nmesh, nhull = len(hd.hull_num), len(hd.hull_vert)
   if not poly:  # one unused entry where an array would be empty; no vertex lists a polygon

@@ -64,7 +64,7 @@ class MeshSupport:
   # MuJoCo's hull polygons (coplanar triangles merged), for telling whether a point lies on a face
   poly_adr: wp.array(dtype=int)  # per mesh: first polygon
   poly_normal: wp.array(dtype=wp.vec3)  # per polygon: outward unit normal (mesh frame)
-  poly_vert_adr: wp.array(dtype=int)  # per polygon: first corner in poly_vert
+  poly_vert_adr: wp.array(dtype=int)  # per polygon: first corner in poly_pos
   poly_vert_num: wp.array(dtype=int)  # per polygon: corners (0: unusable)
   # corners in order, their positions (mesh frame): a face's corner is one read, as hull_pos's
   # support point is, where a hull index would be a chain of dependent loads

@@ -14,8 +14,9 @@ along the direction of least overlap (its refinement settles on that face of A -
 The scan reads every hull face, too heavy for the convex kernel's registers; only answers the
 convex kernel finds suspicious (``narrowphase.suspect_deep``: deeper than ``DEEP_GATE`` x the
 smaller shape's bounding radius, with a face on either shape) come here, through a queue of
-``DEEP_PAIRS_PER_WORLD`` x nworld rows. Pairs beyond it keep MPR's answer, counted
-(``stats(d)["deep_pairs_unchecked"]``).
+``DEEP_PAIRS_PER_WORLD`` rows a world. A world's pairs beyond its rows keep MPR's answer, counted
+(``stats(d)["deep_pairs_unchecked"]``); the rows are the world's own, so that other worlds'
+deep pairs never decide whether its pairs are checked.
 
 A pair that stays deep call after call (robot links whose meshes overlap at rest) is not checked
 every call: the check stamps the pair's warm-start entry (warmstart.py's ``slot_checked``), and
@@ -100,7 +101,8 @@ FACES_OF_B = 1 << 20
 class Buffers:
   """The queue of suspicious deep answers that the convex kernel fills."""
 
-  count: wp.array  # (2,) answers pushed (those beyond the queue's rows included), answers that kept the verdict
+  count: wp.array  # (2,) answers queued, answers that kept the verdict
+  world_count: wp.array  # (nworld,) each world's answers sent to the check, those beyond its rows included
   pair: wp.array  # indices into the pair list
   result: wp.array  # MPR's normal (xyz) and depth (w), margin band included
   pos: wp.array  # MPR's point
@@ -117,6 +119,7 @@ class Buffers:
   round_best: wp.array
   round_index: wp.array
   max_lanes: int = 0  # lanes a pair at most; 0: DEEP_LANES on a GPU, 1 on the CPU
+  per_world: int = DEEP_PAIRS_PER_WORLD  # rows of the queue each world has to itself
 
 
 def make_buffers(nworld: int, capacity: int) -> Buffers:
@@ -124,13 +127,14 @@ def make_buffers(nworld: int, capacity: int) -> Buffers:
   rows = max(1, min(capacity, nworld * DEEP_PAIRS_PER_WORLD))
   # rows x lanes never exceeds LANE_THREADS (_lanes), nor rows with one lane
   lane_slots = max(rows, LANE_THREADS)
-  return Buffers(count=wp.zeros(2, dtype=int), pair=wp.zeros(rows, dtype=int), result=wp.zeros(rows, dtype=wp.vec4),
-                 pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
+  return Buffers(count=wp.zeros(2, dtype=int), world_count=wp.zeros(nworld, dtype=int), pair=wp.zeros(rows, dtype=int),
+                 result=wp.zeros(rows, dtype=wp.vec4), pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
                  along=wp.zeros(rows, dtype=float), lane_best=wp.zeros(lane_slots, dtype=wp.vec4),
                  lane_index=wp.zeros(lane_slots, dtype=int), walk_cur=wp.zeros((2, 2 * rows), dtype=wp.vec4),
                  walk_live=wp.zeros((2, 2 * rows), dtype=int),
                  round_best=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=wp.vec4),
-                 round_index=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=int))
+                 round_index=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=int),
+                 per_world=DEEP_PAIRS_PER_WORLD)  # read here, not at import: tests lower it
 
 
 @wp.struct
@@ -753,9 +757,9 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
       if warm_start:
         key = geoms[0] * geom_type.shape[0] + geoms[1]
-        stored = warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[0], worldid, key, value)
+        stored = warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[worldid], worldid, key, value)
         if stored >= 0:
-          ws_slot_checked[worldid, stored] = ws_stamp[0]
+          ws_slot_checked[worldid, stored] = ws_stamp[worldid]
       if wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
         slot = wp.atomic_add(patch_count, 0, 1)
         patch_pair[slot] = cid

@@ -330,17 +330,18 @@ def suspect_deep(type1: int, type2: int, depth: float, rbound1: float, rbound2: 
 
 
 @wp.func
-def deep_verdict_holds(last: wp.vec4, checked: int, normal: wp.vec3, now: int, worldid: int, key: int,
-                       period: int) -> bool:
+def deep_verdict_holds(last: wp.vec4, checked: int, normal: wp.vec3, now: int, key: int, period: int) -> bool:
   """Whether a deep pair skips the check this call and keeps MPR's answer ``normal``: its MPR
   was warm-started from ``last`` (the previous call's normal, corrected by the check when that
-  ran) and stayed within DEEP_REUSE_COS of it, the check last ran (call ``checked``) fewer than
-  ``period`` calls ago, and this is not the pair's recheck call. Each pair rechecks every
-  ``period`` calls at a phase of its own (a hash of world and geom pair), so that the checks of
-  pairs that went deep together spread over the calls instead of all landing in one."""
+  ran) and stayed within DEEP_REUSE_COS of it, the check last ran (the world's call ``checked``)
+  fewer than ``period`` calls ago, and this is not the pair's recheck call. Each pair rechecks
+  every ``period`` of its world's calls (``now``, counted from the world's last reset) at a phase
+  of its own (a hash of the geom pair), so that the checks of pairs that went deep together
+  spread over the calls instead of all landing in one. The phase is not the world's: identical
+  worlds must check in the same calls, wherever they sit in the batch."""
   if last[3] <= 0.0 or now - checked >= period:
     return False
-  phase = int((wp.uint32(key) * _PHASE_MIX + wp.uint32(worldid)) * _PHASE_MIX >> wp.uint32(8)) % period
+  phase = int((wp.uint32(key) * _PHASE_MIX) >> wp.uint32(8)) % period
   if (now + phase) % period == 0:
     return False
   return wp.dot(normal, wp.vec3(last[0], last[1], last[2])) >= DEEP_REUSE_COS
@@ -487,6 +488,7 @@ def convex_kernel(use_gjk: bool, mode: int):
     ws_slot_checked: wp.array2d(dtype=int),
     ws_misses: wp.array(dtype=int),
     deep_recheck: int,
+    deep_per_world: int,
     queue_count: wp.array(dtype=int),
     queue_pair: wp.array2d(dtype=int),
     pair_in: wp.array(dtype=wp.vec2i),
@@ -500,6 +502,7 @@ def convex_kernel(use_gjk: bool, mode: int):
     patch_result: wp.array(dtype=wp.vec4),
     patch_pos: wp.array(dtype=wp.vec3),
     deep_count: wp.array(dtype=int),
+    deep_world_count: wp.array(dtype=int),
     deep_pair: wp.array(dtype=int),
     deep_result: wp.array(dtype=wp.vec4),
     deep_pos: wp.array(dtype=wp.vec3),
@@ -527,7 +530,6 @@ def convex_kernel(use_gjk: bool, mode: int):
     tilts write up to max_contacts. With warm_start, MPR starts from the pair's normal of the previous call and
     falls back to a cold start when that misses."""
     tid = wp.tid()
-    now = ws_stamp[0]
     queue = wp.static(QUEUE_GJK if use_gjk else QUEUE_MPR)
     for i in range(tid, queue_count[queue], nthread):
       cid = queue_pair[queue, i]
@@ -564,6 +566,7 @@ def convex_kernel(use_gjk: bool, mode: int):
                                geoms, worldid)
       rb = worldid % geom_rbound.shape[0]
       key = g1 * geom_type.shape[0] + g2
+      now = ws_stamp[worldid]
       res = MprResult()
       res.hit = 0
       last = wp.vec4(0.0)
@@ -580,7 +583,7 @@ def convex_kernel(use_gjk: bool, mode: int):
           if attempt == 1 and (res.hit != 0 or last[3] <= 0.0):
             break
           if attempt == 1:
-            wp.atomic_add(ws_misses, 0, 1)
+            wp.atomic_add(ws_misses, worldid, 1)
           q0 = interior_point(a, b, scale)
           if attempt == 0 and last[3] > 0.0:
             q0 = behind_origin(a, b, ms, wp.vec3(last[0], last[1], last[2]), last[3], scale, BEHIND)
@@ -610,11 +613,11 @@ def convex_kernel(use_gjk: bool, mode: int):
       if not wp.static(use_gjk) and extra.n == 0 and suspect_deep(
         geom_type[g1], geom_type[g2], res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2]
       ):
-        if warm_start and deep_verdict_holds(last, checked, res.normal, now, worldid, key, deep_recheck):
+        if warm_start and deep_verdict_holds(last, checked, res.normal, now, key, deep_recheck):
           wp.atomic_add(deep_count, 1, 1)  # counted apart from the queue: the pair goes on below
-        else:
-          # checked by deep_pairs.py, which then queues or writes it as below; beyond the
-          # queue's rows it keeps MPR's answer (counted)
+        elif wp.atomic_add(deep_world_count, worldid, 1) < deep_per_world:
+          # checked by deep_pairs.py, which then queues or writes it as below; beyond its world's
+          # rows it keeps MPR's answer (counted)
           slot = wp.atomic_add(deep_count, 0, 1)
           if slot < deep_pair.shape[0]:
             deep_pair[slot] = cid
@@ -737,9 +740,9 @@ def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: Contact
         opt.max_contacts_per_pair if opt.multi_contact else 1, opt.mc_perturbation,
         c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
         warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,
-        DEEP_RECHECK_CALLS,
+        DEEP_RECHECK_CALLS, deep.per_world,
       ] + queue_inputs + [nthread, quota],
-      outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos, deep.count, deep.pair, deep.result,
-               deep.pos] + contact_outputs(d),
+      outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos, deep.count, deep.world_count, deep.pair,
+               deep.result, deep.pos] + contact_outputs(d),
     )
 

@@ -33,6 +33,7 @@ def start_collision(
   tilt_pair_count: wp.array(dtype=int),
   tilt_count: wp.array(dtype=int),
   deep_count: wp.array(dtype=int),
+  deep_world_count: wp.array(dtype=int),
   hfield_count: wp.array(dtype=int),
   warm_stamp: wp.array(dtype=int),
   warm_misses: wp.array(dtype=int),
@@ -42,6 +43,9 @@ def start_collision(
   a sleeping step keeps the contacts, drop counts and flags of the first pass."""
   worldid = wp.tid()
   world_npair[worldid] = 0
+  deep_world_count[worldid] = 0
+  if warm_start:
+    warmstart.advance_stamp(warm_stamp, warm_misses, worldid)
   if not incremental:
     ndropped[worldid] = 0
     nonfinite[worldid] = 0
@@ -62,8 +66,6 @@ def start_collision(
     hfield_count[k] = 0
   if not incremental:
     nacon[0] = 0
-  if warm_start:
-    warmstart.advance_stamp(warm_stamp, warm_misses)
 
 
 def start(d, st, incremental: bool, warm_start: bool) -> None:
@@ -75,7 +77,7 @@ def start(d, st, incremental: bool, warm_start: bool) -> None:
     inputs=[incremental, warm_start],
     outputs=[d.ncollision, d.nacon, broad.ndropped, broad.nonfinite, broad.world_npair, broad.npair, broad.nwarned,
              narrow.queue_count, narrow.patch_count, narrow.face_count, narrow.tilt_pair_count, narrow.tilt_count,
-             st.deep.count, st.hfield.count, st.warm.stamp, st.warm.misses],
+             st.deep.count, st.deep.world_count, st.hfield.count, st.warm.stamp, st.warm.misses],
   )
 
 

@@ -18,10 +18,11 @@ class CollisionStats(dict):
       ``Options.contacts_per_world`` beyond each world's rows.
     dropped_contacts_per_world: those beyond each world's rows (all 0 without contacts_per_world).
     warm_start_misses: pairs whose warm-started MPR missed and ran again cold.
+    warm_start_misses_per_world: those in each world.
     hfield_mprs_unqueued: terrain MPRs the heightfield queue had no room for.
     deep_pairs: MPR answers deep enough to be checked along the shapes' faces (deep_pairs.py),
-      those beyond its queue included.
-    deep_pairs_unchecked: of those, the ones beyond the queue: they kept MPR's answer.
+      those beyond their world's rows of its queue included.
+    deep_pairs_unchecked: of those, the ones beyond their world's rows: they kept MPR's answer.
     deep_pairs_reused: deep answers that kept the verdict of the pair's last check instead of a
       new one (deep_pairs.py), not counted in deep_pairs; the check ran on deep_pairs minus
       deep_pairs_unchecked.
@@ -77,12 +78,14 @@ class CollisionStats(dict):
       lines.append(f"worlds with NaN or inf geom poses: {len(nonfinite)} ({shown}); they got no pairs")
     else:
       lines.append("worlds with NaN or inf geom poses: 0")
-    lines.append(f"warm-start misses: {self['warm_start_misses']}")
+    misses = self.get("warm_start_misses_per_world") or [0]
+    spread = f" (most: {_worst(misses, worst)})" if any(misses) else ""
+    lines.append(f"warm-start misses: {self['warm_start_misses']}{spread}")
     if self.get("hfield_ccd_as_mpr"):
       lines.append(f"heightfield prisms without GJK/EPA memory (ran MPR): {self['hfield_ccd_as_mpr']}")
     if self.get("deep_pairs_unchecked"):
-      lines.append(f"deep pairs beyond the check's queue: {self['deep_pairs_unchecked']} of {self['deep_pairs']} "
-                   "(they kept MPR's answer)")
+      lines.append(f"deep pairs beyond their world's rows of the check's queue: {self['deep_pairs_unchecked']} of "
+                   f"{self['deep_pairs']} (they kept MPR's answer)")
     if self.get("deep_pairs_reused"):
       lines.append(f"deep pairs that kept their last check's verdict: {self['deep_pairs_reused']} (checked: "
                    f"{self['deep_pairs'] - self['deep_pairs_unchecked']})")
@@ -114,6 +117,7 @@ class CollisionStats(dict):
 # every counter at rest: before the first collision, and those the stock path leaves untouched
 _NO_COUNTS = {"pairs": 0, "pairs_per_world": [], "dropped_pairs_per_world": [], "nonfinite_worlds": [],
               "dropped_contacts": 0, "dropped_contacts_per_world": [], "warm_start_misses": 0,
+              "warm_start_misses_per_world": [],
               "hfield_mprs_unqueued": 0, "hfield_ccd_as_mpr": 0, "deep_pairs": 0, "deep_pairs_unchecked": 0,
               "deep_pairs_reused": 0}
 
@@ -137,7 +141,7 @@ def collect(c, d, st) -> CollisionStats:
     "dropped_pairs_per_world": broad.ndropped.numpy().tolist(),
     "nonfinite_worlds": np.nonzero(broad.nonfinite.numpy())[0].tolist(),
     **_dropped_contacts(c, d, st),
-    "warm_start_misses": int(st.warm.misses.numpy()[0]) if c.options.warm_start else 0,
+    **_warm_start_misses(c, d, st),
     # terrain MPRs that found the heightfield queue full and ran in their pair's thread
     "hfield_mprs_unqueued": int(st.hfield.count.numpy()[COUNT_UNQUEUED]),
     "hfield_ccd_as_mpr": int(st.hfield.count.numpy()[COUNT_CCD_AS_MPR]),
@@ -145,12 +149,18 @@ def collect(c, d, st) -> CollisionStats:
   })
 
 
+def _warm_start_misses(c, d, st) -> dict:
+  """Warm-started MPRs that missed and ran cold again, in all and per world."""
+  per_world = st.warm.misses.numpy() if c.options.warm_start else np.zeros(d.nworld, int)
+  return {"warm_start_misses": int(per_world.sum()), "warm_start_misses_per_world": per_world.tolist()}
+
+
 def _deep_pairs(st) -> dict:
-  """MPR answers sent to the deep-pair check, those beyond its queue, and those that kept their
-  last check's verdict."""
-  pushed, reused = (int(x) for x in st.deep.count.numpy()[:2])
-  return {"deep_pairs": pushed, "deep_pairs_unchecked": max(0, pushed - st.deep.pair.shape[0]),
-          "deep_pairs_reused": reused}
+  """MPR answers sent to the deep-pair check, those beyond their world's rows of its queue, and
+  those that kept their last check's verdict."""
+  sent = st.deep.world_count.numpy()
+  return {"deep_pairs": int(sent.sum()), "deep_pairs_unchecked": int(np.maximum(sent - st.deep.per_world, 0).sum()),
+          "deep_pairs_reused": int(st.deep.count.numpy()[1])}
 
 
 def _dropped_contacts(c, d, st) -> dict:

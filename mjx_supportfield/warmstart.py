@@ -1,13 +1,18 @@
 """Warm start of MPR: last step's contact normal and depth of each (world, geom pair).
 
-A per-world open-addressing hash table keyed by the geom pair. Entries carry the collision
-call (``stamp``) that wrote them, so nothing is ever cleared: an entry counts only when it was
-written by the previous call, which drops a pair that left the broad phase or found no contact.
+A per-world open-addressing hash table keyed by the geom pair. Each world counts its own
+collision calls (``stamp``, since the world's last reset) and its entries carry the call that
+wrote them, so nothing is ever cleared: an entry counts only when it was written by the
+world's previous call, which drops a pair that left the broad phase or found no contact.
+
+Everything here is kept per world and read only by that world's pairs: a world's warm-start
+answers, and the deep-pair check's schedule that rides on them, depend on that world's own
+history alone, not on which other worlds share the batch or where the world sits in it. A full
+table only means cold starts for some of that world's own pairs.
 
 Within one call, lookups and inserts run concurrently. An insert may claim only a slot whose
 stamp is two or more calls old; a lookup walks past slots of the last two calls and of this
 one and stops at an older (or never used) slot, which cannot lie before the entry it looks for.
-A full table only means a cold start for the pairs that found no slot.
 
 Each entry also carries the call that last ran the deep-pair check on the pair
 (``slot_checked``, deep_pairs.py), handed from the previous call's entry to this call's
@@ -15,7 +20,7 @@ Each entry also carries the call that last ran the deep-pair check on the pair
 and then (narrowphase.deep_verdict_holds).
 
 This module owns the cache (``WarmCache``, ``make_cache``), its device functions, and the reset
-of chosen worlds' history (``forget``, with the broad phase's sweep order).
+of chosen worlds' history (``forget``: their calls, entries and the broad phase's sweep order).
 """
 
 import dataclasses
@@ -34,12 +39,12 @@ _FIBONACCI = wp.constant(wp.uint32(2654435769))  # 2^32 / golden ratio
 class WarmCache:
   """Device arrays of the cache of one Data."""
 
-  stamp: wp.array  # (1,) the current collision call
-  slot_stamp: wp.array2d  # (nworld, nslot)
+  stamp: wp.array  # (nworld,) each world's current collision call, counted from its last reset
+  slot_stamp: wp.array2d  # (nworld, nslot) the world's call that wrote the slot
   slot_key: wp.array2d
   slot_value: wp.array2d  # vec4: normal, depth
   slot_checked: wp.array2d  # the call that last ran the deep-pair check on the entry's pair (NEVER: none)
-  misses: wp.array  # (1,) warm-started MPRs of the current call that missed and ran cold again
+  misses: wp.array  # (nworld,) warm-started MPRs of the current call that missed and ran cold again
 
 
 def slots_per_world(npair: int) -> int:
@@ -50,20 +55,20 @@ def slots_per_world(npair: int) -> int:
 def make_cache(nworld: int, nslot: int) -> WarmCache:
   """An empty cache (every slot never written) on the current device."""
   return WarmCache(
-    stamp=wp.zeros(1, dtype=int),
+    stamp=wp.zeros(nworld, dtype=int),
     slot_stamp=wp.full((nworld, nslot), NEVER, dtype=int),
     slot_key=wp.zeros((nworld, nslot), dtype=int),
     slot_value=wp.zeros((nworld, nslot), dtype=wp.vec4),
     slot_checked=wp.full((nworld, nslot), NEVER, dtype=int),
-    misses=wp.zeros(1, dtype=int),
+    misses=wp.zeros(nworld, dtype=int),
   )
 
 
 @wp.func
-def advance_stamp(stamp: wp.array(dtype=int), misses: wp.array(dtype=int)):
-  """Starts a new collision call (on the device, so it runs inside a captured graph)."""
-  stamp[0] = stamp[0] + 1
-  misses[0] = 0
+def advance_stamp(stamp: wp.array(dtype=int), misses: wp.array(dtype=int), worldid: int):
+  """Starts world ``worldid``'s next collision call (on the device, so it runs inside a captured graph)."""
+  stamp[worldid] = stamp[worldid] + 1
+  misses[worldid] = 0
 
 
 @wp.func
@@ -161,23 +166,27 @@ def update(
 
 
 @wp.kernel
-def forget_worlds(reset: wp.array(dtype=bool), sap_init: wp.array(dtype=int), slot_stamp: wp.array2d(dtype=int)):
-  """Drops the history of the worlds ``reset`` marks: their cached normals and their saved
-  sweep-and-prune order (rebuilt from scratch on the next call), as for a fresh Data."""
+def forget_worlds(reset: wp.array(dtype=bool), sap_init: wp.array(dtype=int), stamp: wp.array(dtype=int),
+                  slot_stamp: wp.array2d(dtype=int)):
+  """Drops the history of the worlds ``reset`` marks: their call count, cached normals (and with
+  them the deep-pair verdicts) and saved sweep-and-prune order (rebuilt from scratch on the next
+  call), as for a fresh Data."""
   worldid, slot = wp.tid()
   if not reset[worldid]:
     return
   if slot == 0:
     sap_init[worldid] = 0
+    stamp[worldid] = 0
   slot_stamp[worldid, slot] = NEVER
 
 
 def forget(cache: WarmCache, sap_init: wp.array, reset=None) -> None:
   """Drops the history of the worlds ``reset`` (a bool array, one a world) marks, of every world
-  when None: the cache's normals and the sweep-and-prune order kept in ``sap_init``."""
+  when None: their call count, the cache's normals and the sweep-and-prune order kept in ``sap_init``."""
   if reset is None:
     sap_init.zero_()
+    cache.stamp.zero_()
     cache.slot_stamp.fill_(NEVER)
   else:
-    wp.launch(forget_worlds, dim=cache.slot_stamp.shape, inputs=[reset], outputs=[sap_init, cache.slot_stamp],
-              device=sap_init.device)
+    wp.launch(forget_worlds, dim=cache.slot_stamp.shape, inputs=[reset], outputs=[sap_init, cache.stamp,
+              cache.slot_stamp], device=sap_init.device)

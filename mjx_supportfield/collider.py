@@ -34,7 +34,11 @@ from mjx_supportfield import warmstart
 from mjx_supportfield.options import NXN_MAX_PAIRS
 from mjx_supportfield.options import Options
 from mjx_supportfield.sdf import build_mesh_sdf
+from mjx_supportfield import first_use
+from mjx_supportfield.support_field import MAX_HULL
 from mjx_supportfield.support_field import build_mesh_support
+from mjx_supportfield.support_field import hull_vertex_count
+from mjx_supportfield.support_field import too_large
 from mjx_supportfield.types import CONVEX_TYPES
 from mjx_supportfield.types import STOCK_TYPES
 
@@ -59,6 +63,42 @@ class DataState:
   fields: Optional[tuple] = None  # contact_sort.fields_and_copy, made on first use: packing's and sorting's scratch
 
 
+# Data fields and the MjModel size each has per world
+_DATA_SIZES = (("geom_xpos", "ngeom"), ("qpos", "nq"), ("qvel", "nv"), ("xpos", "nbody"), ("xanchor", "njnt"),
+               ("ctrl", "nu"), ("act", "na"), ("mocap_pos", "nmocap"), ("site_xpos", "nsite"), ("cam_xpos", "ncam"),
+               ("light_xpos", "nlight"), ("ten_length", "ntendon"), ("sensordata", "nsensordata"),
+               ("eq_active", "neq"))
+
+
+def _mesh_plan(mjm: mujoco.MjModel, m, pairs: np.ndarray) -> tuple[list[int], list[int]]:
+  """The meshes the plugin collides, and the mesh geoms it leaves to MuJoCo Warp's narrow phase.
+
+  A mesh geom in no pair of the model (a visual mesh: contype = conaffinity = 0 and in no
+  <pair>) collides nothing, so its meshes get no field, SDF or polygons. A geom whose hull (in
+  any world: ``geom_dataid`` may differ per world) has more vertices than a field's cell can
+  name is collided by MuJoCo Warp itself, with a note."""
+  in_pairs = np.zeros(mjm.ngeom, bool)
+  in_pairs[pairs.reshape(-1)] = True
+  dataid = np.asarray(m.geom_dataid.numpy()).reshape(-1, mjm.ngeom)  # (worlds batched, ngeom)
+  mesh_geoms = np.nonzero(in_pairs & (np.asarray(mjm.geom_type) == GeomType.MESH))[0]
+  meshes_of = {int(g): {int(x) for x in dataid[:, g] if x >= 0} for g in mesh_geoms}
+  large = set(too_large(mjm, set().union(*meshes_of.values())))
+  stock_geoms = [g for g, ids in meshes_of.items() if ids & large]
+  for g in stock_geoms:
+    meshid = min(meshes_of[g] & large)
+    first_use.logger.info(
+      "geom '%s': the hull of mesh '%s' has %d vertices, more than a support field's %d; MuJoCo Warp's own narrow"
+      " phase collides its pairs", _name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g), _name(mjm, mujoco.mjtObj.mjOBJ_MESH,
+                                                                                     meshid),
+      hull_vertex_count(mjm, meshid), MAX_HULL)
+  kept = sorted(set().union(*(ids for g, ids in meshes_of.items() if g not in stock_geoms)))
+  return kept, stock_geoms
+
+
+def _name(mjm: mujoco.MjModel, kind, i: int) -> str:
+  return mujoco.mj_id2name(mjm, kind, i) or f"#{i}"
+
+
 class Collider:
   """Everything the plugin built for one MuJoCo Warp model (see ``install``)."""
 
@@ -66,15 +106,25 @@ class Collider:
     heightfield.check_model(mjm)
     if options.contacts_per_world and m.opt.enableflags & EnableBit.SLEEP:
       raise ValueError(_SLEEP_QUOTA)
-    self.options, self.ngeom, self.nq, self.nbody = options, mjm.ngeom, mjm.nq, mjm.nbody
+    self.options, self.ngeom = options, mjm.ngeom
+    # every model-sized array of a Data: a Data made for another model differs in one of them
+    self.data_sizes = {field: int(getattr(mjm, size)) for field, size in _DATA_SIZES}
     self.device = device = m.geom_type.device
     with wp.ScopedDevice(device):
-      self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device)
-      stock = np.isin(np.asarray(mjm.geom_type), [int(t) for t in STOCK_TYPES])
-      self.geom_stock = wp.array(stock.astype(np.int32), dtype=int)
-
       pairs = np.asarray(m.nxn_geom_pair_filtered.numpy()).reshape(-1, 2)
       pairids = np.asarray(m.nxn_pairid_filtered.numpy()).reshape(-1, 2)
+      self.collided_meshes, large = _mesh_plan(mjm, m, pairs)
+      # mesh geoms the plugin collides, for m.geom_dataid replaced after install (_check_geom_dataid)
+      self._plugin_mesh_geoms = {
+        _name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g): g for g in np.unique(pairs)
+        if mjm.geom_type[g] == GeomType.MESH and g not in large}
+      self._geom_dataid = m.geom_dataid
+      self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device,
+                                             meshes=self.collided_meshes)
+      stock = np.isin(np.asarray(mjm.geom_type), [int(t) for t in STOCK_TYPES])
+      stock[large] = True
+      self.geom_stock = wp.array(stock.astype(np.int32), dtype=int)
+
       explicit = (pairids[:, 0] >= 0) | (pairids[:, 1] >= 0)
       self.nexplicit = int(explicit.sum())
       self.explicit_pair = wp.array(pairs[explicit].astype(np.int32), dtype=wp.vec2i)
@@ -111,7 +161,7 @@ class Collider:
       self.sdfs.true_mesh = build_mesh_sdf(mjm, options.nonconvex_sdf_res, ncmeshes, device, nonconvex.mesh_triangles)
       # hull SDFs: for the fallback of meshes that meet another shape through MPR, and for the
       # convex meshes a non-convex one may touch
-      mesh_ids = {int(x) for x in np.asarray(mjm.geom_dataid)[np.asarray(mjm.geom_type) == GeomType.MESH] if x >= 0}
+      mesh_ids = set(self.collided_meshes)
       meshes = set()
       if options.mpr_to_sdf_overlap_ratio > 0 and any(GeomType.MESH in t for t in self.mpr_types):
         meshes = set(mesh_ids)
@@ -152,7 +202,7 @@ class Collider:
     return st
 
   def _check_data(self, d):
-    for field, want in (("geom_xpos", self.ngeom), ("qpos", self.nq), ("xpos", self.nbody)):
+    for field, want in self.data_sizes.items():
       shape = getattr(d, field).shape
       if len(shape) != 2 or shape[1] != want:
         raise ValueError(
@@ -182,6 +232,23 @@ class Collider:
     for st in [st for st in states.values() if st is not None]:  # the stock path keeps no history
       warmstart.forget(st.warm, st.broad.sap_init, reset)
 
+  def _check_geom_dataid(self, m):
+    """Accepts a ``m.geom_dataid`` replaced after install (per-world mesh variants) whose meshes
+    install built support for; raises naming the geom, world and mesh otherwise."""
+    if m.geom_dataid.device.is_capturing:
+      raise ValueError("mjx_supportfield: m.geom_dataid was replaced after install and is first seen while a CUDA"
+                       " graph is captured; run one step (or collision) uncaptured first, so the plugin can check it")
+    dataid = np.asarray(m.geom_dataid.numpy()).reshape(-1, self.ngeom)
+    built = set(self.collided_meshes)
+    for name, g in self._plugin_mesh_geoms.items():
+      for w, meshid in enumerate(dataid[:, g]):
+        if meshid >= 0 and int(meshid) not in built:
+          raise ValueError(
+            f"mjx_supportfield: m.geom_dataid was replaced after install: geom '{name}' names mesh {int(meshid)} in"
+            f" world {w}, for which install built no support field (it builds them for the meshes m.geom_dataid"
+            " names then); set per-world meshes before install, or uninstall(m) and install again")
+    self._geom_dataid = m.geom_dataid
+
   # --- the collision stage ---------------------------------------------------------------
 
   def collision(self, m, d, awake_prev: Optional[wp.array] = None):
@@ -203,6 +270,8 @@ class Collider:
     if d.naconmax == 0 or m.opt.disableflags & (DisableBit.CONSTRAINT | DisableBit.CONTACT):
       d.nacon.zero_()
       return
+    if m.geom_dataid is not self._geom_dataid:
+      self._check_geom_dataid(m)
     per_world = self.options.contacts_per_world
     if per_world and (awake_prev is not None or m.opt.enableflags & EnableBit.SLEEP):  # enabled after install
       raise ValueError(_SLEEP_QUOTA)
@@ -239,6 +308,18 @@ class Collider:
       m.callback.contactfilter(m, d)
 
   # --- diagnostics --------------------------------------------------------------------
+
+  def model_bytes(self) -> int:
+    """Device bytes of the model-time data install built (hulls, polygons, support fields, SDFs,
+    pair tables); MuJoCo Warp's arrays that the plugin reads in place (mesh vertices) not counted."""
+    shared = {id(self.mesh_support.vert)}
+    seen, total = set(), 0
+    for holder in (self, self.mesh_support, self.mesh_sdf, self.sdfs.true_mesh):
+      for value in vars(holder).values():
+        if isinstance(value, wp.array) and id(value) not in shared | seen:
+          seen.add(id(value))
+          total += value.capacity
+    return total
 
   def stats(self, d) -> dict:
     """Host-side counters of the last collision on ``d`` (reads the device: not for graphs): a

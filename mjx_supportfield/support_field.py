@@ -16,6 +16,8 @@ exact support on a dense check set (4 directions inside every cell plus random o
 """
 
 import dataclasses
+from typing import Collection
+from typing import Optional
 
 import mujoco
 import numpy as np
@@ -47,7 +49,7 @@ _NCHECK_SUB = 2  # in-cell samples per cell side
 # become exact at any finite resolution, since near each face normal three or more vertex
 # cones meet inside one cell, so those meshes get the cap without paying for finer checks
 _ADAPTIVE_MAX = 64
-_MAX_HULL = INDEX_MASK  # largest hull a cell's 14 index bits can address
+MAX_HULL = INDEX_MASK  # largest hull a cell's 14 index bits can address
 
 
 @dataclasses.dataclass
@@ -106,13 +108,20 @@ def mesh_hull_planes(mjm: mujoco.MjModel, meshid: int) -> np.ndarray:
   return np.concatenate([n, (hull @ n.T).max(axis=0)[:, None]], axis=1).astype(np.float32)
 
 
+def _ranges(adr: np.ndarray, num: np.ndarray) -> np.ndarray:
+  """The indices adr[i] .. adr[i] + num[i] - 1 of every i, back to back."""
+  adr, num = np.asarray(adr, np.int64), np.asarray(num, np.int64)
+  return np.repeat(adr - np.cumsum(num) + num, num) + np.arange(num.sum())
+
+
 def hull_polygons(mjm: mujoco.MjModel, hull_adr: np.ndarray, hull_num: np.ndarray, hull_vert: np.ndarray) -> dict:
-  """MuJoCo's hull polygons re-indexed for MeshSupport: corners as global hull indices
-  (``poly_hull``, which _set_polygons turns into positions), and per hull vertex (global hull
-  index) the polygons around it. A polygon with a corner that is not a hull vertex gets no
-  corners (never used)."""
+  """MuJoCo's hull polygons of the meshes that have hulls here (``hull_num`` > 0), re-indexed for
+  MeshSupport: corners as global hull indices (``poly_hull``, which _set_polygons turns into
+  positions), and per hull vertex (global hull index) the polygons around it (indices within the
+  mesh, as MuJoCo's). The other meshes' polygons are left out. A polygon with a corner that is
+  not a hull vertex gets no corners (never used)."""
   nmesh = len(hull_num)
-  npoly = np.asarray(mjm.mesh_polynum, np.int64)[:nmesh]
+  npoly = np.asarray(mjm.mesh_polynum, np.int64)[:nmesh] * (np.asarray(hull_num) > 0)
   if nmesh == 0 or npoly.sum() == 0:
     return {}
   vertadr = np.asarray(mjm.mesh_vertadr, np.int64)
@@ -120,34 +129,42 @@ def hull_polygons(mjm: mujoco.MjModel, hull_adr: np.ndarray, hull_num: np.ndarra
   local = np.arange(len(hull_vert)) - np.asarray(hull_adr, np.int64)[mesh_of_hull]
   hull_index = np.full(mjm.nmeshvert, -1, np.int64)  # global mesh vertex -> local hull index
   hull_index[vertadr[mesh_of_hull] + hull_vert] = local
-  vert_adr = np.asarray(mjm.mesh_polyvertadr, np.int64)
-  vert_num = np.asarray(mjm.mesh_polyvertnum, np.int64)
+  polys = _ranges(np.asarray(mjm.mesh_polyadr, np.int64)[:nmesh], npoly)  # the kept polygons, by mesh
+  vert_num = np.asarray(mjm.mesh_polyvertnum, np.int64)[polys]
   mesh_of_poly = np.repeat(np.arange(nmesh), npoly)
-  corner_poly = np.repeat(np.arange(len(vert_num)), vert_num)
-  within = np.arange(vert_num.sum()) - np.repeat(np.cumsum(vert_num) - vert_num, vert_num)
-  corner = np.repeat(vert_adr, vert_num) + within  # every polygon's corners, in order
+  corner_poly = np.repeat(np.arange(len(polys)), vert_num)
+  corner = _ranges(np.asarray(mjm.mesh_polyvertadr, np.int64)[polys], vert_num)  # their corners, in order
   corners = hull_index[vertadr[mesh_of_poly[corner_poly]] + np.asarray(mjm.mesh_polyvert, np.int64)[corner]]
-  bad = np.zeros(len(vert_num), bool)
+  bad = np.zeros(len(polys), bool)
   bad[corner_poly[corners < 0]] = True
-  poly_hull = np.zeros(max(len(np.asarray(mjm.mesh_polyvert)), 1), np.int32)
-  poly_hull[corner] = np.asarray(hull_adr, np.int64)[mesh_of_poly[corner_poly]] + np.maximum(corners, 0)
+  poly_hull = np.asarray(hull_adr, np.int64)[mesh_of_poly[corner_poly]] + np.maximum(corners, 0)
   around = vertadr[mesh_of_hull] + hull_vert  # each hull vertex as a global mesh vertex
+  map_num = np.asarray(mjm.mesh_polymapnum, np.int64)[around]
   return {
-    "poly_adr": np.asarray(mjm.mesh_polyadr, np.int32)[:nmesh],
-    "poly_normal": np.asarray(mjm.mesh_polynormal, np.float32).reshape(-1, 3),
-    "poly_vert_adr": vert_adr.astype(np.int32),
+    "poly_adr": (np.cumsum(npoly) - npoly).astype(np.int32),
+    "poly_normal": np.asarray(mjm.mesh_polynormal, np.float32).reshape(-1, 3)[polys],
+    "poly_vert_adr": (np.cumsum(vert_num) - vert_num).astype(np.int32),
     "poly_vert_num": np.where(bad | (vert_num < 3), 0, vert_num).astype(np.int32),
-    "poly_hull": poly_hull,
-    "vert_poly_adr": np.asarray(mjm.mesh_polymapadr, np.int32)[around],
-    "vert_poly_num": np.asarray(mjm.mesh_polymapnum, np.int32)[around],
-    "vert_poly": np.asarray(mjm.mesh_polymap, np.int32),
+    "poly_hull": poly_hull.astype(np.int32) if len(poly_hull) else np.zeros(1, np.int32),
+    "vert_poly_adr": (np.cumsum(map_num) - map_num).astype(np.int32),
+    "vert_poly_num": map_num.astype(np.int32),
+    "vert_poly": np.asarray(mjm.mesh_polymap, np.int32)[_ranges(np.asarray(mjm.mesh_polymapadr)[around], map_num)],
   }
 
 
-def hull_data(mjm: mujoco.MjModel) -> HullData:
-  """Flattens the hulls of all meshes of a model."""
-  parts = [mesh_hull(mjm, i) for i in range(mjm.nmesh)]
-  planes = [mesh_hull_planes(mjm, i) for i in range(mjm.nmesh)]
+def hull_vertex_count(mjm: mujoco.MjModel, meshid: int) -> int:
+  """Vertices of a mesh's hull as MeshSupport holds it (all its vertices without a hull graph)."""
+  adr = int(mjm.mesh_graphadr[meshid])
+  return int(mjm.mesh_vertnum[meshid]) if adr < 0 else int(mjm.mesh_graph[adr])
+
+
+def hull_data(mjm: mujoco.MjModel, meshes: Optional[Collection[int]] = None) -> HullData:
+  """Flattens the hulls of a model's meshes: all of them, or only ``meshes`` (the others get
+  empty hulls, no polygons and, in build_from_hulls, no field)."""
+  keep = range(mjm.nmesh) if meshes is None else set(int(i) for i in meshes)
+  empty = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.int32))
+  parts = [mesh_hull(mjm, i) if i in keep else empty for i in range(mjm.nmesh)]
+  planes = [mesh_hull_planes(mjm, i) if i in keep else np.zeros((0, 4), np.float32) for i in range(mjm.nmesh)]
   plane_num = np.array([len(p) for p in planes], dtype=np.int32)
   hull_num = np.array([len(p[0]) for p in parts], dtype=np.int32)
   nbr_num = np.concatenate([p[1] for p in parts]).astype(np.int32) if parts else np.zeros(0, np.int32)
@@ -534,7 +551,8 @@ def choose_resolutions(ms: MeshSupport, hull_num: np.ndarray, cap: int, extremes
   return chosen
 
 
-def build_mesh_support(mjm: mujoco.MjModel, mesh_vert: wp.array, res: int, device=None, adaptive: bool = True) -> MeshSupport:
+def build_mesh_support(mjm: mujoco.MjModel, mesh_vert: wp.array, res: int, device=None, adaptive: bool = True,
+                       meshes: Optional[Collection[int]] = None) -> MeshSupport:
   """Builds MeshSupport (hulls, neighbour lists and one field per mesh) on the device.
 
   Args:
@@ -543,17 +561,24 @@ def build_mesh_support(mjm: mujoco.MjModel, mesh_vert: wp.array, res: int, devic
     res: the resolution cap (``Options.support_res``).
     device: Warp device.
     adaptive: pick the smallest exact resolution per mesh; False uses ``res`` for all.
+    meshes: the meshes the plugin collides (None: all); the others get nothing.
 
   Raises:
-    ValueError: a hull too large for 16-bit cells, naming the mesh.
+    ValueError: a hull too large for 16-bit cells, naming the mesh (``too_large`` finds them
+      first, so that their geoms can go to MuJoCo Warp's own narrow phase).
   """
-  hd = hull_data(mjm)
-  big = np.nonzero(hd.hull_num > _MAX_HULL)[0]
+  hd = hull_data(mjm, meshes)
+  big = np.nonzero(hd.hull_num > MAX_HULL)[0]
   if len(big):
     name = mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_MESH, int(big[0])) or f"mesh {big[0]}"
-    raise ValueError(f"mesh '{name}': its convex hull has {hd.hull_num[big[0]]} vertices, more than {_MAX_HULL}"
+    raise ValueError(f"mesh '{name}': its convex hull has {hd.hull_num[big[0]]} vertices, more than {MAX_HULL}"
                      " (set maxhullvert on the mesh)")
   return build_from_hulls(hd, mesh_vert, np.asarray(mjm.mesh_vertadr, dtype=np.int32), res, device, adaptive)
+
+
+def too_large(mjm: mujoco.MjModel, meshes: Collection[int]) -> list[int]:
+  """Those of ``meshes`` whose hull has more vertices than a field's cell can name."""
+  return [int(i) for i in meshes if hull_vertex_count(mjm, int(i)) > MAX_HULL]
 
 
 def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int, device=None, adaptive: bool = True

@@ -13,8 +13,8 @@ contacts per world, worlds with NaN in qpos or qvel, worlds with a body below th
 of the static world), MuJoCo Warp's overflow flags (``overflow_flags``; ``buffer_overflow``
 names those of buffers that drop contacts or constraints), as JSON with the GPU's name.
 
-mjlab imports wandb, torchrunx and onnxscript at module level in places its tasks never call;
-``stub_optional_imports`` stands in for those that are not installed.
+mjlab imports wandb, torchrunx, onnxscript and imageio_ffmpeg at module level for what its tasks
+never call; ``stub_optional_imports`` stands in for those that are not installed.
 """
 
 import argparse
@@ -28,9 +28,10 @@ import types
 
 import numpy as np
 
-# packages mjlab imports at module level in places its tasks never call (its loggers, launcher and
-# exporter); the viewer and rsl_rl's imports (viser, mjviser, tensorboard) must be installed
-OPTIONAL = ("wandb", "torchrunx", "onnxscript")
+# packages mjlab imports at module level for what its tasks never call (its loggers, launcher,
+# exporter and video writer); the viewer and rsl_rl's imports (viser, mjviser, tensorboard) must
+# be installed
+OPTIONAL = ("wandb", "torchrunx", "onnxscript", "imageio_ffmpeg")
 TASKS = ("Mjlab-Velocity-Rough-Unitree-Go1", "Mjlab-Velocity-Rough-Unitree-G1", "Mjlab-Lift-Cube-Yam",
          "Mjlab-Multi-Cube-Seg-Yam")
 BELOW = 0.2  # m under the lowest static surface: a body there went through the ground

@@ -446,18 +446,38 @@ def _commit() -> str:
     return "?"
 
 
+# robosuite's arms as shipped (benchmarks/robosuite_arms.py): built in its cache on first use, as
+# robosuite's visual meshes are too large for the repository; not in the default --scenes
+ROBOSUITE_SCENES = tuple(f"robosuite_{arm}" for arm in ("panda", "ur5e", "sawyer"))
+ROBOSUITE_SECONDS = 1.0  # the arm slumps onto the table and the objects under zero torques
+
+
+def add_robosuite_scenes() -> None:
+  """Registers the robosuite scenes with real_scenes (their MJCF files live in the cache)."""
+  sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+  import robosuite_arms
+
+  for arm, path in robosuite_arms.write_scenes().items():
+    SCENES[f"robosuite_{arm}"] = Scene(path, ROBOSUITE_SECONDS, None, robosuite_arms.objects_on_table,
+                                       f"robosuite's {arm} arm with its hand, as shipped (visual meshes kept), "
+                                       "slumping onto a table with a can, a milk carton and a cereal box")
+
+
 def main(argv=None) -> None:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated, of: " + ", ".join(SCENES))
+  parser.add_argument("--scenes", default=",".join(SCENES),
+                      help="comma-separated, of: " + ", ".join([*SCENES, *ROBOSUITE_SCENES]))
   parser.add_argument("--states", type=int, default=20, help="states sampled from MuJoCo C's rollout (and as many squeezed)")
   parser.add_argument("--worlds", type=int, default=3, help="worlds of the mjw.step rollouts")
   parser.add_argument("--json", default=os.path.join(RESULTS, f"{datetime.date.today()}-cpu-fidelity.json"))
   parser.add_argument("--no-rollout", action="store_true", help="contacts on states only")
   args = parser.parse_args(argv)
   names = [s for s in args.scenes.split(",") if s]
-  unknown = [s for s in names if s not in SCENES]
+  unknown = [s for s in names if s not in SCENES and s not in ROBOSUITE_SCENES]
   if unknown:
-    parser.error(f"unknown scene(s) {', '.join(unknown)}; known: {', '.join(SCENES)}")
+    parser.error(f"unknown scene(s) {', '.join(unknown)}; known: {', '.join([*SCENES, *ROBOSUITE_SCENES])}")
+  if any(s in ROBOSUITE_SCENES for s in names):
+    add_robosuite_scenes()
   results = {}
   meta = {"date": str(datetime.date.today()), "commit": _commit(), "device": str(wp.get_device()),
           "machine": platform.machine(),

@@ -24,6 +24,7 @@ from mjx_supportfield import broadphase
 from mjx_supportfield import contact_quota
 from mjx_supportfield import contact_sort
 from mjx_supportfield import deep_pairs
+from mjx_supportfield import first_use
 from mjx_supportfield import heightfield
 from mjx_supportfield import multicontact_pass
 from mjx_supportfield import nonconvex
@@ -34,7 +35,6 @@ from mjx_supportfield import warmstart
 from mjx_supportfield.options import NXN_MAX_PAIRS
 from mjx_supportfield.options import Options
 from mjx_supportfield.sdf import build_mesh_sdf
-from mjx_supportfield import first_use
 from mjx_supportfield.support_field import MAX_HULL
 from mjx_supportfield.support_field import build_mesh_support
 from mjx_supportfield.support_field import hull_vertex_count
@@ -70,8 +70,9 @@ _DATA_SIZES = (("geom_xpos", "ngeom"), ("qpos", "nq"), ("qvel", "nv"), ("xpos", 
                ("eq_active", "neq"))
 
 
-def _mesh_plan(mjm: mujoco.MjModel, m, pairs: np.ndarray) -> tuple[list[int], list[int]]:
-  """The meshes the plugin collides, and the mesh geoms it leaves to MuJoCo Warp's narrow phase.
+def _mesh_plan(mjm: mujoco.MjModel, m, pairs: np.ndarray) -> tuple[list[int], list[int], list[int]]:
+  """The meshes the plugin collides, the mesh geoms that name them, and the mesh geoms it leaves
+  to MuJoCo Warp's narrow phase.
 
   A mesh geom in no pair of the model (a visual mesh: contype = conaffinity = 0 and in no
   <pair>) collides nothing, so its meshes get no field, SDF or polygons. A geom whose hull (in
@@ -91,8 +92,8 @@ def _mesh_plan(mjm: mujoco.MjModel, m, pairs: np.ndarray) -> tuple[list[int], li
       " phase collides its pairs", _name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g), _name(mjm, mujoco.mjtObj.mjOBJ_MESH,
                                                                                      meshid),
       hull_vertex_count(mjm, meshid), MAX_HULL)
-  kept = sorted(set().union(*(ids for g, ids in meshes_of.items() if g not in stock_geoms)))
-  return kept, stock_geoms
+  plugin_geoms = [g for g in meshes_of if g not in stock_geoms]
+  return sorted(set().union(*(meshes_of[g] for g in plugin_geoms))), plugin_geoms, stock_geoms
 
 
 def _name(mjm: mujoco.MjModel, kind, i: int) -> str:
@@ -113,11 +114,9 @@ class Collider:
     with wp.ScopedDevice(device):
       pairs = np.asarray(m.nxn_geom_pair_filtered.numpy()).reshape(-1, 2)
       pairids = np.asarray(m.nxn_pairid_filtered.numpy()).reshape(-1, 2)
-      self.collided_meshes, large = _mesh_plan(mjm, m, pairs)
-      # mesh geoms the plugin collides, for m.geom_dataid replaced after install (_check_geom_dataid)
-      self._plugin_mesh_geoms = {
-        _name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g): g for g in np.unique(pairs)
-        if mjm.geom_type[g] == GeomType.MESH and g not in large}
+      self.collided_meshes, plugin_geoms, large = _mesh_plan(mjm, m, pairs)
+      # for a m.geom_dataid replaced after install (_check_geom_dataid)
+      self._plugin_mesh_geoms = {_name(mjm, mujoco.mjtObj.mjOBJ_GEOM, g): g for g in plugin_geoms}
       self._geom_dataid = m.geom_dataid
       self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device,
                                              meshes=self.collided_meshes)

@@ -61,19 +61,16 @@ def cache_dir() -> str:
 
 
 def _wanted(name: str) -> bool:
-  """The wheel's files the scenes use: the three arms, their grippers, the objects with their
-  meshes and textures, and robosuite's licence."""
+  """The wheel's files the scenes use: the three arms, every gripper and hand robosuite ships
+  (benchmarks/compare_robots.py loads each as shipped), the objects with their meshes and
+  textures, and robosuite's licence."""
   if name.endswith("/LICENSE") and ".dist-info/" in name:
     return True
   if not name.startswith(ASSETS):
     return False
   rel = name[len(ASSETS):]
-  grippers = {g for _, g, _ in ARMS.values()}
-  gripper_meshes = {m for _, _, ms in ARMS.values() for m in ms}
   return (any(rel.startswith(f"robots/{r}/") for r, _, _ in ARMS.values())
-          or rel in {f"grippers/{g}.xml" for g in grippers}
-          or any(rel.startswith(f"grippers/meshes/{m}/") for m in gripper_meshes)
-          or any(rel.startswith(f"grippers/obj_meshes/{m}/") for m in gripper_meshes)
+          or rel.startswith("grippers/")
           or rel in {f"objects/{o}.xml" for o in OBJECTS}
           or rel in {os.path.normpath(os.path.join("objects", f)) for f in OBJECT_FILES})
 
@@ -81,7 +78,7 @@ def _wanted(name: str) -> bool:
 def fetch(cache: str) -> str:
   """robosuite's asset folder under ``cache``, downloaded and unpacked on first use."""
   assets = os.path.join(cache, ASSETS)
-  if os.path.isdir(os.path.join(assets, "robots")):
+  if os.path.isfile(os.path.join(assets, "grippers", "jaco_three_finger_gripper.xml")):
     return assets
   os.makedirs(cache, exist_ok=True)
   with tempfile.TemporaryDirectory() as tmp:

@@ -410,7 +410,10 @@ def deep_funcs(mode: int) -> SimpleNamespace:
     u = wp.vec3(least[0], least[1], least[2])
     r = mpr_refined_from(a, b, ms, behind_origin(a, b, ms, u, least[3], scale, BEHIND), scale, tol,
                          mpr_options.iterations, mpr_options.refine, BEHIND)
-    if r.hit != 0 and r.depth < res.depth - tol * scale:
+    # the rerun wins where it is shallower, or where the shapes overlap less along its normal
+    # than along MPR's: MPR stopped short of A - B's boundary (a depth below the overlap along
+    # its own normal) is no answer to keep
+    if r.hit != 0 and (r.depth < res.depth - tol * scale or overlap_along(a, b, ms, r.normal) < along - tol * scale):
       return r
     return res
 
@@ -750,17 +753,21 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       res.hit = 1
       queued = deep_result[s]
       res.normal = wp.vec3(queued[0], queued[1], queued[2])
-      res.depth = queued[3]
+      res.depth = wp.abs(queued[3])
       res.pos = deep_pos[s]
       least = _merge_lanes(lane_best, lane_index, s * nlane, nlane)
-      res = rerun_along(a, b, ms, res, least, deep_along[s], scale, mpr_options)
+      checked = rerun_along(a, b, ms, res, least, deep_along[s], scale, mpr_options)
+      # the SDFs' answer (queued negated) kept: one contact, unperturbed, as the convex kernel
+      # writes it
+      sdf_kept = queued[3] < 0.0 and checked.depth == res.depth and checked.normal == res.normal
+      res = checked
       value = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
       if warm_start:
         key = geoms[0] * geom_type.shape[0] + geoms[1]
         stored = warmstart.update(ws_slot_stamp, ws_slot_key, ws_slot_value, ws_stamp[worldid], worldid, key, value)
         if stored >= 0:
           ws_slot_checked[worldid, stored] = ws_stamp[worldid]
-      if wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
+      if not sdf_kept and wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):
         slot = wp.atomic_add(patch_count, 0, 1)
         patch_pair[slot] = cid
         patch_result[slot] = value

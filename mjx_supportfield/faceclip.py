@@ -39,9 +39,10 @@ from mjx_supportfield.types import Shape
 
 MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's bound)
 # reference corners x incident corners above which a face pair goes to the tilts: the clipping
-# loops over every pair of them. A box face on a can's 24-gon bottom (4 x 24) is within it, an
-# aluminium extrusion's 76-gon end is not
-FACE_PAIR_BUDGET = 96
+# loops over every pair of them. Robot links' hulls have faces of tens of corners (a 40-gon on a
+# triangle, a pot's 24-gon on a box face), whose tilts land on the deepest edge alone; two
+# 24-gons are within it, an aluminium extrusion's 76-gon end on a 76-gon is not
+FACE_PAIR_BUDGET = 640
 DISK_CORNERS = 16  # MuJoCo's polygon for a cylinder's end
 
 # kinds of Face
@@ -64,7 +65,6 @@ MISSED_DEPTH = 0.1
 # lying flat on a face all corners are as deep, and float32 rounding would pick a different one
 # each step
 DEEPEST_MARGIN = 0.1
-QUAD_TIE = 1.0e-6  # relative area below which two quadrilaterals tie (float32 rounding)
 
 
 # corners of each box face in MuJoCo's order (collision_gjk._box_face), 3 bits a corner (bit 0
@@ -125,7 +125,7 @@ class Picks:
   """The streamed corners of a clipped polygon, by their coordinates (a, b) along two directions
   u, v across the reference face (a corner's height follows from the incident plane it lies
   on): the first distinct ones (up to MAX_MANIFOLD; n = MAX_MANIFOLD + 1 once more came), the
-  deepest, and the extremes along u and v, both ways. Scalar fields, no arrays: an array indexed
+  deepest, and the extremes along u, v and the two diagonals, both ways. Scalar fields, no arrays: an array indexed
   at run time lives in local memory on a GPU, and every register held through the streaming
   loops is one the clipping cannot use."""
 
@@ -152,6 +152,22 @@ class Picks:
   e2b: float
   e3a: float  # -v
   e3b: float
+  e4a: float  # +u +v
+  e4b: float
+  e5a: float  # +u -v
+  e5b: float
+  e6a: float  # -u +v
+  e6b: float
+  e7a: float  # -u -v
+  e7b: float
+  e0s: float  # how far each extreme lies along its direction
+  e1s: float
+  e2s: float
+  e3s: float
+  e4s: float
+  e5s: float
+  e6s: float
+  e7s: float
 
 
 @wp.func
@@ -229,15 +245,31 @@ def _new_picks() -> Picks:
   p.deep_a = 0.0
   p.deep_b = 0.0
   p.deep_h = FAR
-  # extremes start beyond any corner, so that the first corner takes every slot
-  p.e0a = -FAR
+  # extremes start behind any corner, so that the first corner takes every slot
+  p.e0a = 0.0
   p.e0b = 0.0
-  p.e1a = FAR
+  p.e1a = 0.0
   p.e1b = 0.0
   p.e2a = 0.0
-  p.e2b = -FAR
+  p.e2b = 0.0
   p.e3a = 0.0
-  p.e3b = FAR
+  p.e3b = 0.0
+  p.e4a = 0.0
+  p.e4b = 0.0
+  p.e5a = 0.0
+  p.e5b = 0.0
+  p.e6a = 0.0
+  p.e6b = 0.0
+  p.e7a = 0.0
+  p.e7b = 0.0
+  p.e0s = -FAR
+  p.e1s = -FAR
+  p.e2s = -FAR
+  p.e3s = -FAR
+  p.e4s = -FAR
+  p.e5s = -FAR
+  p.e6s = -FAR
+  p.e7s = -FAR
   return p
 
 
@@ -284,18 +316,40 @@ def _pick(p: Picks, a: float, b: float, h: float, band: float, spacing: float) -
     out.deep_a = a
     out.deep_b = b
     out.deep_h = h
-  if a > out.e0a:
+  along_u = a
+  along_v = b
+  if along_u > out.e0s:
     out.e0a = a
     out.e0b = b
-  if a < out.e1a:
+    out.e0s = along_u
+  if -along_u > out.e1s:
     out.e1a = a
     out.e1b = b
-  if b > out.e2b:
+    out.e1s = -along_u
+  if along_v > out.e2s:
     out.e2a = a
     out.e2b = b
-  if b < out.e3b:
+    out.e2s = along_v
+  if -along_v > out.e3s:
     out.e3a = a
     out.e3b = b
+    out.e3s = -along_v
+  if along_u + along_v > out.e4s:
+    out.e4a = a
+    out.e4b = b
+    out.e4s = along_u + along_v
+  if along_u - along_v > out.e5s:
+    out.e5a = a
+    out.e5b = b
+    out.e5s = along_u - along_v
+  if along_v - along_u > out.e6s:
+    out.e6a = a
+    out.e6b = b
+    out.e6s = along_v - along_u
+  if -along_u - along_v > out.e7s:
+    out.e7a = a
+    out.e7b = b
+    out.e7s = -along_u - along_v
   return out
 
 
@@ -461,56 +515,60 @@ def _lift(a: float, b: float, plane: wp.vec4) -> wp.vec3:
 
 
 @wp.func
-def _quad_area(pa: wp.vec3, pb: wp.vec3, pc: wp.vec3, pd: wp.vec3) -> float:
-  """_area4 of incident corners seen along the reference normal (face frame): on a plane, the
-  area over the plane's cosine, so the same quadrilaterals win as in MuJoCo."""
-  return 0.5 * wp.abs(_cross2(wp.vec2(pa[0] - pc[0], pa[1] - pc[1]), wp.vec2(pb[0] - pd[0], pb[1] - pd[1])))
+def _corner64(s: Shape, ms: MeshSupport, f: Face, k: int) -> wp.vec3d:
+  """Corner k of face f in its shape's frame, in float64."""
+  x = _corner(s, ms, f, k)
+  return wp.vec3d(wp.float64(x[0]), wp.float64(x[1]), wp.float64(x[2]))
 
 
 @wp.func
-def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat, shift: wp.vec3, start: int
-                  ) -> wp.vec4i:
-  """collision_gjk._polygon_quad on the incident face read in place, from its corner ``start``
-  on: the corners (counted from start) of a quadrilateral of locally largest area. A corner
-  moves on only for QUAD_TIE more area: on a round end (equal quadrilaterals) float32 rounding
-  chose another one every step, and a cylinder resting on its end crept. The four corners are
-  held as they climb, so that each step reads only the one that moves (a local array of them
-  would sit in local memory on a GPU)."""
-  n = inc.nvert
-  b = int(1)
-  c = int(2)
-  d = int(3)
+def _quad_area(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, d: wp.vec3d) -> wp.float64:
+  """collision_gjk._area4: the area of quadrilateral abcd of a flat face."""
+  return wp.float64(0.5) * wp.length(wp.cross(d - a, b - d) + wp.cross(c - b, a - c))
+
+
+@wp.func
+def _climb(s: Shape, f: Face, ms: MeshSupport, start: int, b0: int, c0: int, d0: int):
+  """collision_gjk._polygon_quad's climb on face f of s read in place, from its corner ``start``
+  on and the quadrilateral (0, b0, c0, d0) counted from there: the corners (counted from start)
+  of a quadrilateral of locally largest area, and that area. The four corners are held as they
+  climb, so that each step reads only the one that moves (a local array of them would sit in
+  local memory on a GPU); each climb goes at most once round the face."""
+  n = f.nvert
+  b = int(b0)
+  c = int(c0)
+  d = int(d0)
   res = wp.vec4i(0, b, c, d)
-  pa = _inc_corner(inc_shape, inc, ms, to_face, shift, start % n)
-  pb = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + b) % n)
-  pc = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + c) % n)
-  pd = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + d) % n)
+  pa = _corner64(s, ms, f, start % n)
+  pb = _corner64(s, ms, f, (start + b) % n)
+  pc = _corner64(s, ms, f, (start + c) % n)
+  pd = _corner64(s, ms, f, (start + d) % n)
   m = _quad_area(pa, pb, pc, pd)
   for a in range(n):
     if a > 0:
-      pa = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + a) % n)
-    while True:
-      p_next = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + (d + 1) % n) % n)
+      pa = _corner64(s, ms, f, (start + a) % n)
+    for _step in range(n):
+      p_next = _corner64(s, ms, f, (start + (d + 1) % n) % n)
       m_next = _quad_area(pa, pb, pc, p_next)
-      if m_next <= m * (1.0 + QUAD_TIE):
+      if m_next <= m:
         break
       m = m_next
       d = (d + 1) % n
       pd = p_next
       res = wp.vec4i(a, b, c, d)
-      while True:
-        p_next = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + (c + 1) % n) % n)
+      for _step in range(n):
+        p_next = _corner64(s, ms, f, (start + (c + 1) % n) % n)
         m_next = _quad_area(pa, pb, p_next, pd)
-        if m_next <= m * (1.0 + QUAD_TIE):
+        if m_next <= m:
           break
         m = m_next
         c = (c + 1) % n
         pc = p_next
         res = wp.vec4i(a, b, c, d)
-      while True:
-        p_next = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + (b + 1) % n) % n)
+      for _step in range(n):
+        p_next = _corner64(s, ms, f, (start + (b + 1) % n) % n)
         m_next = _quad_area(pa, p_next, pc, pd)
-        if m_next <= m * (1.0 + QUAD_TIE):
+        if m_next <= m:
           break
         m = m_next
         b = (b + 1) % n
@@ -518,14 +576,34 @@ def _polygon_quad(inc_shape: Shape, inc: Face, ms: MeshSupport, to_face: wp.quat
         res = wp.vec4i(a, b, c, d)
     if b == a:
       b = (b + 1) % n
-      pb = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + b) % n)
+      pb = _corner64(s, ms, f, (start + b) % n)
       if c == b:
         c = (c + 1) % n
-        pc = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + c) % n)
+        pc = _corner64(s, ms, f, (start + c) % n)
         if d == c:
           d = (d + 1) % n
-          pd = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + d) % n)
-  return res
+          pd = _corner64(s, ms, f, (start + d) % n)
+  return res, m
+
+
+@wp.func
+def _polygon_quad(s: Shape, f: Face, ms: MeshSupport, start: int) -> wp.vec4i:
+  """collision_gjk._polygon_quad on face f of s, from its corner ``start`` on: the corners
+  (counted from start) of a quadrilateral of locally largest area.
+
+  Areas are taken in float64 in the shape's own frame, as MuJoCo C takes them in float64: its
+  climb moves on for gains of a few 1e-7 of the area, below float32's rounding, and in the world
+  frame float32 rounding would change with the pose, choosing another quadrilateral from step to
+  step (a cylinder resting on its end crept). MuJoCo's climb starts from the first four corners;
+  where those lie on one straight edge of the face (a pie slice of a pot's bottom) only the
+  rounding of its world frame moves it on, and exact in the shape's frame it would stay there: a
+  second climb from corners spread round the face is taken where it ends larger."""
+  n = f.nvert
+  quad, area = _climb(s, f, ms, start, 1, 2, 3)
+  spread, spread_area = _climb(s, f, ms, start, n // 4, n // 2, (3 * n) // 4)
+  if spread_area > area * wp.float64(1.0 + 1.0e-9):
+    return spread
+  return quad
 
 
 @wp.func
@@ -582,11 +660,63 @@ def _stream_polygon(ref_shape: Shape, ref: Face, inc_shape: Shape, inc: Face, ms
 
 
 @wp.func
+def _extreme(p: Picks, k: int) -> wp.vec2:
+  """Extreme k of the streamed corners: along +u, -u, +v, -v, then the four diagonals."""
+  a = wp.where(k == 0, p.e0a, wp.where(k == 1, p.e1a, wp.where(k == 2, p.e2a, wp.where(k == 3, p.e3a, wp.where(
+    k == 4, p.e4a, wp.where(k == 5, p.e5a, wp.where(k == 6, p.e6a, p.e7a)))))))
+  b = wp.where(k == 0, p.e0b, wp.where(k == 1, p.e1b, wp.where(k == 2, p.e2b, wp.where(k == 3, p.e3b, wp.where(
+    k == 4, p.e4b, wp.where(k == 5, p.e5b, wp.where(k == 6, p.e6b, p.e7b)))))))
+  return wp.vec2(a, b)
+
+
+@wp.func
+def _area4(p: wp.vec2, q: wp.vec2, r: wp.vec2, s: wp.vec2) -> float:
+  """Twice the area of the convex quadrilateral on four points: the largest of their three
+  pairings into crossing diagonals."""
+  return wp.max(wp.abs(_cross2(r - p, s - q)), wp.max(wp.abs(_cross2(q - p, s - r)), wp.abs(_cross2(r - q, s - p))))
+
+
+@wp.func
+def _candidate(p: Picks, k: int) -> wp.vec2:
+  """Streamed corner k: the eight extremes (0 to 7, _extreme), then the first distinct corners
+  (8 to 12)."""
+  if k < 8:
+    return _extreme(p, k)
+  return wp.vec2(wp.where(k == 8, p.a0, wp.where(k == 9, p.a1, wp.where(k == 10, p.a2, wp.where(k == 11, p.a3, p.a4)))),
+                 wp.where(k == 8, p.b0, wp.where(k == 9, p.b1, wp.where(k == 10, p.b2, wp.where(k == 11, p.b3, p.b4)))))
+
+
+@wp.func
+def _largest_quad(p: Picks) -> wp.vec4i:
+  """Of the streamed corners kept (_candidate: the eight extremes and the first MAX_MANIFOLD
+  distinct ones), the four spanning the largest quadrilateral: MuJoCo C keeps its clipped
+  polygon's quadrilateral of largest area (collision_gjk._polygon_quad), whose corners each lie
+  farthest across the diagonal between their neighbours; the extremes along the face frame's
+  axes alone can fall on fewer or other corners (one corner farthest both along u and against
+  v: two of a triangle cut by a 40-gon where MuJoCo keeps four). Ties keep the earlier four."""
+  res = wp.vec4i(0, 2, 1, 3)
+  best = float(0.0)
+  ncand = 8 + wp.min(p.n, MAX_MANIFOLD)
+  for i in range(ncand):
+    pi = _candidate(p, i)
+    for j in range(i + 1, ncand):
+      pj = _candidate(p, j)
+      for k in range(j + 1, ncand):
+        pk = _candidate(p, k)
+        for m in range(k + 1, ncand):
+          area = _area4(pi, pj, pk, _candidate(p, m))
+          if area > best * (1.0 + 1.0e-5):
+            best = area
+            res = wp.vec4i(i, j, k, m)
+  return res
+
+
+@wp.func
 def _chosen(picks: Picks, plane_offset: float, plane: wp.vec4, spacing: float, max_contacts: int,
             depth_margin: float) -> Manifold:
   """Which streamed corners become contacts: all when there are no more than max_contacts
-  (distinct); else the deepest (where clearly deepest, DEEPEST_MARGIN) and the extremes along u
-  and v, both ways, in that order, repeats dropped. Corners lifted onto the incident plane,
+  (distinct); else the deepest (where clearly deepest, DEEPEST_MARGIN) and the four streamed
+  corners spanning the largest quadrilateral (_largest_quad), in that order, repeats dropped. Corners lifted onto the incident plane,
   heights over the reference plane (z = plane_offset) in dist, all in the face frame."""
   mf = Manifold()
   mf.status = CLIPPED
@@ -602,10 +732,15 @@ def _chosen(picks: Picks, plane_offset: float, plane: wp.vec4, spacing: float, m
       x = _lift(a, b, plane)
       mf = _put(mf, x, x[2] - plane_offset, 0.0, picks.n)
     return mf
-  x0 = _lift(picks.e0a, picks.e0b, plane)
-  x1 = _lift(picks.e1a, picks.e1b, plane)
-  x2 = _lift(picks.e2a, picks.e2b, plane)
-  x3 = _lift(picks.e3a, picks.e3b, plane)
+  quad = _largest_quad(picks)
+  c0 = _candidate(picks, quad[0])
+  c1 = _candidate(picks, quad[1])
+  c2 = _candidate(picks, quad[2])
+  c3 = _candidate(picks, quad[3])
+  x0 = _lift(c0[0], c0[1], plane)
+  x1 = _lift(c1[0], c1[1], plane)
+  x2 = _lift(c2[0], c2[1], plane)
+  x3 = _lift(c3[0], c3[1], plane)
   if picks.deep_h < wp.min(wp.min(x0[2], x1[2]), wp.min(x2[2], x3[2])) - plane_offset - depth_margin:
     x = _lift(picks.deep_a, picks.deep_b, plane)
     mf = _put(mf, x, x[2] - plane_offset, spacing, max_contacts)
@@ -811,6 +946,12 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
       inc = _incident(a, ms, -fb.normal)
     else:
       inc = _incident(b, ms, -fa.normal)
+      # a face on a face: of B's face facing A's and B's face along the normal, the nearer to
+      # the normal, as MuJoCo's faces are those at its contact's support points (the one facing
+      # A's face alone took the other half of a pad split into coplanar triangles; the one found
+      # along the normal alone, a sliver beside a pot's bottom, around the support vertex)
+      if face_face and (inc.kind == FACE_SEGMENT or wp.dot(fb.normal, normal) < wp.dot(inc.normal, normal)):
+        inc = fb
     if inc.kind == FACE_NONE or ref.nvert * inc.nvert > FACE_PAIR_BUDGET:
       return none
     return wp.vec3i(wp.where(ref_is_b, 1, 0), face_code(ref), face_code(inc))
@@ -864,7 +1005,7 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
         # polygon, each of the reference face's side planes having moved its start on by one
         # corner, and MuJoCo C's contacts its quadrilateral of largest area climbed to from there
         start = ref.nvert % inc.nvert
-        quad = _polygon_quad(inc_shape, inc, ms, to_face, shift, start)
+        quad = _polygon_quad(inc_shape, inc, ms, start)
         out.status = CLIPPED
         for k in range(4):
           x = _inc_corner(inc_shape, inc, ms, to_face, shift, (start + quad[k]) % inc.nvert)

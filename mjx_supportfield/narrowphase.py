@@ -610,7 +610,9 @@ def convex_kernel(use_gjk: bool, mode: int):
         stored = warmstart.insert(ws_slot_stamp, ws_slot_key, ws_slot_value, now, worldid, key, value)
         if stored >= 0:
           ws_slot_checked[worldid, stored] = checked
-      if not wp.static(use_gjk) and extra.n == 0 and suspect_deep(
+      # the SDFs' answer too (extra.n -1): its depth is the deepest point's, below the overlap
+      # along its normal, so "shallower" there is no proof that its normal is the way out
+      if not wp.static(use_gjk) and extra.n <= 0 and suspect_deep(
         geom_type[g1], geom_type[g2], res.depth - band, geom_rbound[rb, g1], geom_rbound[rb, g2]
       ):
         if warm_start and deep_verdict_holds(last, checked, res.normal, now, key, deep_recheck):
@@ -621,7 +623,9 @@ def convex_kernel(use_gjk: bool, mode: int):
           slot = wp.atomic_add(deep_count, 0, 1)
           if slot < deep_pair.shape[0]:
             deep_pair[slot] = cid
-            deep_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2], res.depth)
+            # an SDF answer's depth is queued negated: kept, it stays one contact, unperturbed
+            deep_result[slot] = wp.vec4(res.normal[0], res.normal[1], res.normal[2],
+                                        wp.where(extra.n < 0, -res.depth, res.depth))
             deep_pos[slot] = res.pos
             continue
       if extra.n == 0 and wants_patch(geom_type, geoms, a, b, ms, res, max_contacts, mc_perturbation):

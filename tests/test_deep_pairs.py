@@ -323,20 +323,3 @@ def test_captured_check_runs_only_when_queued():
     assert int(sim.d.nacon.numpy()[0]) == n
     for field in ("dist", "pos", "frame", "geom", "worldid"):
       np.testing.assert_array_equal(getattr(sim.d.contact, field).numpy()[:n], getattr(ref.d.contact, field).numpy()[:n])
-
-
-@pytest.mark.xfail(strict=True, reason="known (issue #35): a deep mesh pair's manifold stops at its deepest feature; "
-                   "MuJoCo C's multi-CCD and stock's keep points over the whole overlap")
-def test_deep_link_overlap_manifold_spans_mujocos_points():
-  """aloha_pot's wrist link sunk 35 mm into the other arm's finger (tests/data/repro): each of
-  MuJoCo C's 4 points, spanning 38 mm along the finger, has a contact of the pair within 3 mm.
-  Stock MuJoCo Warp writes C's 4; the plugin writes the 2 at the deepest edge."""
-  mjm = mujoco.MjModel.from_xml_path(os.path.join(REPRO, "aloha_wrist_finger.xml"))
-  sim = load(None, mjm=mjm)
-  ref = np.array([c.pos for c in sim.mjd.contact[: sim.mjd.ncon] if c.dist < -5e-4])
-  assert len(ref) == 4 and np.ptp(ref[:, 0]) > 0.03
-  sf.install(mjm, sim.m)
-  sf.collision(sim.m, sim.d)
-  got = contacts(sim.d, 0).pos
-  nearest = np.linalg.norm(ref[:, None, :] - got[None, :, :], axis=2).min(axis=1)
-  assert (nearest < 3e-3).all(), f"C's points {np.round(nearest * 1e3, 1)} mm from the plugin's nearest"

@@ -224,7 +224,8 @@ ROLLERS_XML = """
 
 # a 48-gon prism standing on a box: its end and the box's face have more corners together than
 # face clipping takes on (faceclip.FACE_PAIR_BUDGET corner pairs)
-_ANGLES = np.arange(48) * 2.0 * np.pi / 48
+PRISM_SIDES = 176  # a 176-gon end on a box's face: 176 x 4 corner pairs, over faceclip.FACE_PAIR_BUDGET
+_ANGLES = np.arange(PRISM_SIDES) * 2.0 * np.pi / PRISM_SIDES
 PRISM = " ".join(f"{0.03 * np.cos(t):.6f} {0.03 * np.sin(t):.6f} {z}" for z in (-0.02, 0.02) for t in _ANGLES)
 PRISM_XML = f"""
 <mujoco>
@@ -256,9 +257,9 @@ def test_face_contacts_skip_the_tilts():
 
 
 def test_polygons_over_the_budget_go_to_the_tilts():
-  """A 48-gon end on a box's face (48 x 4 corner pairs, over faceclip.FACE_PAIR_BUDGET): the pair
-  goes to the tilts, which still spread points over the end's rim, at the depth."""
-  assert faceclip.FACE_PAIR_BUDGET < 48 * 4
+  """A 176-gon end on a box's face (over faceclip.FACE_PAIR_BUDGET): the pair goes to the tilts,
+  which still spread points over the end's rim, at the depth."""
+  assert faceclip.FACE_PAIR_BUDGET < PRISM_SIDES * 4
   npatch, ntilt, sim = _queues(PRISM_XML)
   assert (npatch, ntilt) == (1, 1)
   c = contacts(sim.d, 0)

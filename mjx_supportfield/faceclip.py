@@ -44,6 +44,7 @@ MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's 
 # 24-gons are within it, an aluminium extrusion's 76-gon end on a 76-gon is not
 FACE_PAIR_BUDGET = 640
 DISK_CORNERS = 16  # MuJoCo's polygon for a cylinder's end
+QUAD_ROUNDS = 2  # alternations between a quadrilateral's diagonals in _largest_quad
 
 # kinds of Face
 FACE_NONE = wp.constant(0)
@@ -670,13 +671,6 @@ def _extreme(p: Picks, k: int) -> wp.vec2:
 
 
 @wp.func
-def _area4(p: wp.vec2, q: wp.vec2, r: wp.vec2, s: wp.vec2) -> float:
-  """Twice the area of the convex quadrilateral on four points: the largest of their three
-  pairings into crossing diagonals."""
-  return wp.max(wp.abs(_cross2(r - p, s - q)), wp.max(wp.abs(_cross2(q - p, s - r)), wp.abs(_cross2(r - q, s - p))))
-
-
-@wp.func
 def _candidate(p: Picks, k: int) -> wp.vec2:
   """Streamed corner k: the eight extremes (0 to 7, _extreme), then the first distinct corners
   (8 to 12)."""
@@ -687,28 +681,72 @@ def _candidate(p: Picks, k: int) -> wp.vec2:
 
 
 @wp.func
+def _sorted4(q: wp.vec4i) -> wp.vec4i:
+  """q's entries in increasing order (a sorting network): the corners go out in candidate order,
+  whichever diagonal was found first."""
+  a = wp.min(q[0], q[1])
+  b = wp.max(q[0], q[1])
+  c = wp.min(q[2], q[3])
+  d = wp.max(q[2], q[3])
+  lo = wp.min(a, c)
+  hi = wp.max(b, d)
+  m1 = wp.max(a, c)
+  m2 = wp.min(b, d)
+  return wp.vec4i(lo, wp.min(m1, m2), wp.max(m1, m2), hi)
+
+
+@wp.func
+def _sides(p: Picks, ncand: int, i: int, k: int) -> wp.vec2i:
+  """The candidates farthest from the line through candidates i and k on either side (the same
+  index on both where every candidate lies on one side or on the line): with i and k, the
+  quadrilateral of largest area on that diagonal. Ties keep the earlier candidate."""
+  a = _candidate(p, i)
+  d = _candidate(p, k) - a
+  left = int(i)
+  right = int(k)
+  most = float(0.0)
+  least = float(0.0)
+  for m in range(ncand):
+    c = _cross2(d, _candidate(p, m) - a)
+    if c > most:
+      most = c
+      left = m
+    if c < least:
+      least = c
+      right = m
+  return wp.vec2i(left, right)
+
+
+@wp.func
 def _largest_quad(p: Picks) -> wp.vec4i:
   """Of the streamed corners kept (_candidate: the eight extremes and the first MAX_MANIFOLD
-  distinct ones), the four spanning the largest quadrilateral: MuJoCo C keeps its clipped
-  polygon's quadrilateral of largest area (collision_gjk._polygon_quad), whose corners each lie
-  farthest across the diagonal between their neighbours; the extremes along the face frame's
-  axes alone can fall on fewer or other corners (one corner farthest both along u and against
-  v: two of a triangle cut by a 40-gon where MuJoCo keeps four). Ties keep the earlier four."""
-  res = wp.vec4i(0, 2, 1, 3)
-  best = float(0.0)
+  distinct ones), four spanning a largest quadrilateral: MuJoCo C keeps its clipped polygon's
+  quadrilateral of largest area (collision_gjk._polygon_quad), and the extremes along the face
+  frame's axes alone can fall on fewer or other corners (one corner farthest both along u and
+  against v: three of a triangle cut by a 40-gon where MuJoCo keeps four). A largest
+  quadrilateral's corners each lie farthest across the diagonal between their neighbours, so
+  from the farthest pair the corners farthest on either side are taken, then the farthest on
+  either side of that diagonal, QUAD_ROUNDS times: a few tens of tests where trying every four
+  of 13 candidates took 715, and on a GPU a kernel waits for its longest thread."""
   ncand = 8 + wp.min(p.n, MAX_MANIFOLD)
-  for i in range(ncand):
-    pi = _candidate(p, i)
-    for j in range(i + 1, ncand):
-      pj = _candidate(p, j)
-      for k in range(j + 1, ncand):
-        pk = _candidate(p, k)
-        for m in range(k + 1, ncand):
-          area = _area4(pi, pj, pk, _candidate(p, m))
-          if area > best * (1.0 + 1.0e-5):
-            best = area
-            res = wp.vec4i(i, j, k, m)
-  return res
+  i = int(0)
+  k = int(0)
+  far = float(0.0)
+  for m in range(ncand):
+    pm = _candidate(p, m)
+    for n in range(m + 1, ncand):
+      dist = wp.length_sq(_candidate(p, n) - pm)
+      if dist > far:
+        far = dist
+        i = m
+        k = n
+  sides = _sides(p, ncand, i, k)
+  for _ in range(QUAD_ROUNDS):
+    across = _sides(p, ncand, sides[0], sides[1])
+    i = across[1]
+    k = across[0]
+    sides = _sides(p, ncand, i, k)
+  return _sorted4(wp.vec4i(i, sides[0], k, sides[1]))
 
 
 @wp.func

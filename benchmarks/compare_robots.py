@@ -53,7 +53,9 @@ def row(name: str, path: str) -> dict:
   if plugin["contacts_reference"] == 0:
     return {"scene": name, "skipped": "no contacts in the sampled states"}
   return {"scene": name, "deep_points": plugin["deep_points_reference"], "plugin_missed": plugin["deep_points_missed"],
-          "stock_missed": stock["deep_points_missed"], "normals_worse": plugin["pairs_normal_worse"],
+          "stock_missed": stock["deep_points_missed"],
+          "missed_where_mujoco_is_worse": plugin["deep_points_missed_reference_worse"],
+          "normals_worse": plugin["pairs_normal_worse"],
           "off_shapes": plugin["contacts_outside"], "contacts": plugin["contacts"],
           "contacts_mujoco": plugin["contacts_reference"], "contacts_stock": stock["contacts"],
           "check": compare.check(report), "missed_list": plugin["deep_points_missed_list"]}
@@ -74,7 +76,8 @@ def main(argv=None) -> int:
       print(f"{name}: not compared: {r['skipped']}", flush=True)
       continue
     verdict = "passes" if not r["check"] else "fails: " + "; ".join(r["check"])
-    print(f"{name}: {r['plugin_missed']} of {r['deep_points']} deep points missed (stock {r['stock_missed']}), "
+    print(f"{name}: {r['plugin_missed']} of {r['deep_points']} deep points missed (stock {r['stock_missed']}; "
+          f"{r['missed_where_mujoco_is_worse']} on pairs where MuJoCo C's normal is the worse one), "
           f"{r['normals_worse']} worse normals, {r['off_shapes']} off shapes, contacts {r['contacts']} "
           f"(C {r['contacts_mujoco']}, stock {r['contacts_stock']}): {verdict}", flush=True)
   compared = [r for r in rows if "skipped" not in r]

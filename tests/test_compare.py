@@ -15,6 +15,7 @@ from mjx_supportfield.compare import compare_states
 from mjx_supportfield.compare import format_report
 from mjx_supportfield.compare import match
 from mjx_supportfield.compare import Contact
+from mjx_supportfield.compare import _fidelity_summary
 from mjx_supportfield.options import Options
 
 MJW_MESHES = os.path.join(os.path.dirname(mujoco_warp.__file__), "test_data", "meshes")
@@ -304,3 +305,25 @@ def test_nonconvex_pairs_are_labelled_and_not_counted():
   assert summary["deep_points_reference"] == sum(1 for r in deep if r["kind"] != "nonconvex")
   assert all(r["kind"] == "nonconvex" for r in deep if {"bowl", "cup"} & set(r["pair"].split("-")))
   assert "MuJoCo C collides this mesh's convex hull" in format_report({"model": "nonconvex", **report})
+
+
+def test_missed_points_on_pairs_where_mujocos_normal_is_worse_are_counted_apart():
+  """A missed point of a pair whose normal is far from MuJoCo C's and better by exact overlap is
+  counted in deep_points_missed_reference_worse (C's points lie on another feature there); a
+  missed point of a pair whose normal is worse, or of another state, is not."""
+  def deep(geoms, missed):
+    return {"pair": "a-b", "geoms": geoms, "kind": "convex", "dist": -0.01, "pos": [0.0, 0.0, 0.0],
+            "nearest": 0.01, "missed": missed}
+
+  def normal(geoms, verdict):
+    return {"pair": "a-b", "geoms": geoms, "angle_deg": 40.0, "verdict": verdict, "kind": "convex"}
+
+  outside = {"checked": 0, "max_outside": 0.0, "off": []}
+  states = [
+    {"world": 0, "state": 0, "deep_points": [deep((0, 1), True), deep((0, 1), True), deep((1, 2), True)],
+     "normals": [normal((0, 1), "better"), normal((1, 2), "worse")], "outside": outside},
+    {"world": 1, "state": 1, "deep_points": [deep((0, 1), True), deep((0, 1), False)], "normals": [], "outside": outside},
+  ]
+  summary = _fidelity_summary(states)
+  assert summary["deep_points_missed"] == 4
+  assert summary["deep_points_missed_reference_worse"] == 2

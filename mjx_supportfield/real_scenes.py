@@ -54,13 +54,14 @@ def sweep_control(mjm: mujoco.MjModel, t: float) -> np.ndarray:
 def quadruped_control(mjm: mujoco.MjModel, t: float) -> np.ndarray:
   """mjlab's standing pose (the keyframe's ctrl), a crouch (0.3-0.9 s), then stepping in place
   from 1.0 s: diagonal leg pairs (FR+RL, FL+RR) lifted in turn at 2 Hz by bending thigh and
-  calf."""
+  calf; every robot of the scene alike (its actuators in groups of 12)."""
   ctrl = mjm.key_ctrl[0].copy()
   crouch = _smooth(t, 0.3, 0.6) - _smooth(t, 0.6, 0.9)
   ctrl[1::3] += 0.3 * crouch
   ctrl[2::3] -= 0.6 * crouch
   gait = _smooth(t, 1.0, 1.2)
-  for leg, phase in enumerate((0.0, np.pi, np.pi, 0.0)):  # FR, FL, RR, RL
+  for leg in range(len(ctrl) // 3):  # each robot's FR, FL, RR, RL
+    phase = (0.0, np.pi, np.pi, 0.0)[leg % 4]
     lift = max(0.0, np.sin(2.0 * np.pi * 2.0 * (t - 1.0) + phase)) * gait
     ctrl[3 * leg + 1] += 0.2 * lift
     ctrl[3 * leg + 2] -= 0.6 * lift
@@ -109,6 +110,15 @@ def quadruped_outcome(mjm, mjd, start) -> dict:
           "trunk_travel_m": float(np.linalg.norm(mjd.xpos[trunk][:2] - start.xpos[trunk][:2]))}
 
 
+def quadrupeds_outcome(mjm, mjd, start) -> dict:
+  """Of several Go1s (bodies r<k>_trunk): how many stand upright (trunk's up axis z > 0.8), the
+  lowest trunk's rise over its start (negative: sunk) and the farthest any wandered."""
+  trunks = [b for b in range(mjm.nbody) if mjm.body(b).name.endswith("_trunk")]
+  return {"robots": len(trunks), "robots_upright": int(sum(mjd.xmat[b][8] > 0.8 for b in trunks)),
+          "lowest_trunk_rise_m": float(min(mjd.xpos[b][2] - start.xpos[b][2] for b in trunks)),
+          "max_travel_m": float(max(np.linalg.norm(mjd.xpos[b][:2] - start.xpos[b][:2]) for b in trunks))}
+
+
 def polyhedra_outcome(mjm, mjd, start) -> dict:
   """Polyhedra inside the mug (within its inner radius, below its rim)."""
   mug = _body_pos(mjm, mjd, "mug")
@@ -139,6 +149,9 @@ SCENES = {
                      "robosuite's Panda arm (mesh links) sweeps 7 objects across a table"),
   "quadruped_terrain": Scene("quadruped_terrain.xml", 2.2, quadruped_control, quadruped_outcome,
                              "mjlab's Unitree Go1 stands, crouches and steps on a heightfield"),
+  "quadruped_rough": Scene("quadruped_rough.xml", 2.2, quadruped_control, quadrupeds_outcome,
+                           "four of mjlab's Go1s stand, crouch and step on an mjlab-style grid of tiles: rough, "
+                           "slope and wave heightfields and box stairs"),
   "polyhedra": Scene("polyhedra.xml", 1.5, None, polyhedra_outcome,
                      "MuJoCo Warp's test polyhedra dropped into a mug and slid down a ramp"),
 }

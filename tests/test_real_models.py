@@ -74,6 +74,8 @@ def test_mujoco_rollout_does_the_task(name):
     assert sum(d > 0.05 for d in moved) >= 4, "the sweep should push most objects"
   elif name == "quadruped_terrain":
     assert outcome["trunk_up_z"] > 0.9 and outcome["trunk_z_m"] > 0.2  # standing, not fallen over
+  elif name == "quadruped_rough":
+    assert outcome["robots_upright"] == outcome["robots"] == 4 and outcome["lowest_trunk_rise_m"] > -0.15
   elif name == "polyhedra":
     assert outcome["polyhedra_in_mug"] >= 3
 
@@ -120,6 +122,16 @@ def test_quadruped_terrain_is_what_its_script_writes():
   built = spec.compile()
   np.testing.assert_allclose(committed.hfield_data, built.hfield_data, atol=1e-5)  # the MJCF keeps 6 digits
   assert committed.nu == built.nu == 12 and committed.nkey == 1
+
+
+def test_quadruped_rough_is_what_its_script_writes():
+  spec = importlib.util.spec_from_file_location("make_quadruped_rough", os.path.join(REAL, "make_quadruped_rough.py"))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  committed = mujoco.MjModel.from_xml_path(os.path.join(REAL, "quadruped_rough.xml"))
+  built = module.build().compile()
+  np.testing.assert_allclose(committed.hfield_data, built.hfield_data, atol=1e-5)  # the MJCF keeps 6 digits
+  assert committed.nu == built.nu == 48 and committed.nhfield == 4 and committed.nkey == 1
 
 
 def test_readme_lists_every_asset_with_a_licence():

@@ -119,6 +119,19 @@ def quadrupeds_outcome(mjm, mjd, start) -> dict:
           "max_travel_m": float(max(np.linalg.norm(mjd.xpos[b][:2] - start.xpos[b][:2]) for b in trunks))}
 
 
+def hold_pose(mjm: mujoco.MjModel, t: float) -> np.ndarray:
+  """The keyframe's controls throughout (position targets: the robots hold their initial pose)."""
+  return mjm.key_ctrl[0].copy()
+
+
+def humanoids_outcome(mjm, mjd, start) -> dict:
+  """Of several G1s (bodies h<k>_pelvis): how many are down (pelvis's up axis z < 0.5) and the
+  lowest pelvis's height."""
+  pelvises = [b for b in range(mjm.nbody) if mjm.body(b).name.endswith("_pelvis")]
+  return {"robots": len(pelvises), "robots_down": int(sum(mjd.xmat[b][8] < 0.5 for b in pelvises)),
+          "lowest_pelvis_z_m": float(min(mjd.xpos[b][2] for b in pelvises))}
+
+
 def polyhedra_outcome(mjm, mjd, start) -> dict:
   """Polyhedra inside the mug (within its inner radius, below its rim)."""
   mug = _body_pos(mjm, mjd, "mug")
@@ -152,6 +165,9 @@ SCENES = {
   "quadruped_rough": Scene("quadruped_rough.xml", 2.2, quadruped_control, quadrupeds_outcome,
                            "four of mjlab's Go1s stand, crouch and step on an mjlab-style grid of tiles: rough, "
                            "slope and wave heightfields and box stairs"),
+  "humanoid_rough": Scene("humanoid_rough.xml", 2.2, hold_pose, humanoids_outcome,
+                          "two of mjlab's G1s hold mjlab's home pose on rough and wave heightfields and, with no "
+                          "balance controller, topple onto the terrain"),
   "polyhedra": Scene("polyhedra.xml", 1.5, None, polyhedra_outcome,
                      "MuJoCo Warp's test polyhedra dropped into a mug and slid down a ramp"),
 }

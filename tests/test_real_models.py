@@ -40,7 +40,7 @@ def _terrain_script():
 
 
 def test_every_scene_file_is_in_the_suite():
-  files = {f for f in os.listdir(REAL) if f.endswith(".xml") and f != "go1.xml"}  # go1.xml: the robot alone
+  files = {f for f in os.listdir(REAL) if f.endswith(".xml") and f not in ("go1.xml", "g1.xml")}  # robots alone
   assert files == {real_scenes.SCENES[s].xml for s in SCENES}
 
 
@@ -76,6 +76,8 @@ def test_mujoco_rollout_does_the_task(name):
     assert outcome["trunk_up_z"] > 0.9 and outcome["trunk_z_m"] > 0.2  # standing, not fallen over
   elif name == "quadruped_rough":
     assert outcome["robots_upright"] == outcome["robots"] == 4 and outcome["lowest_trunk_rise_m"] > -0.15
+  elif name == "humanoid_rough":
+    assert outcome["robots_down"] == outcome["robots"] == 2  # toppled onto the terrain, not through it
   elif name == "polyhedra":
     assert outcome["polyhedra_in_mug"] >= 3
 
@@ -132,6 +134,17 @@ def test_quadruped_rough_is_what_its_script_writes():
   built = module.build().compile()
   np.testing.assert_allclose(committed.hfield_data, built.hfield_data, atol=1e-5)  # the MJCF keeps 6 digits
   assert committed.nu == built.nu == 48 and committed.nhfield == 4 and committed.nkey == 1
+
+
+def test_humanoid_rough_is_what_its_script_writes():
+  spec = importlib.util.spec_from_file_location("make_humanoid_rough", os.path.join(REAL, "make_humanoid_rough.py"))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  committed = mujoco.MjModel.from_xml_path(os.path.join(REAL, "humanoid_rough.xml"))
+  built = module.build().compile()
+  np.testing.assert_allclose(committed.hfield_data, built.hfield_data, atol=1e-5)
+  np.testing.assert_allclose(committed.actuator_gainprm[:, 0], built.actuator_gainprm[:, 0], rtol=1e-5)
+  assert committed.nu == built.nu == 58 and committed.nkey == 1
 
 
 def test_readme_lists_every_asset_with_a_licence():

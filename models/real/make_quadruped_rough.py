@@ -57,12 +57,8 @@ def _add_stairs(spec: mujoco.MjSpec, centre) -> None:
                             pos=[centre[0], centre[1], STEP_RISE * (k + 0.5)])
 
 
-def build() -> mujoco.MjSpec:
-  """The scene as an MjSpec: the tiles and the four robots with their drives."""
-  spec = mujoco.MjSpec()
-  spec.modelname = "quadruped_rough"
-  spec.option.timestep = 0.002
-  spec.compiler.degree = False
+def add_tiles(spec: mujoco.MjSpec) -> None:
+  """The grid: a heightfield a tile (named terrain_<kind>) and the stairs' boxes, in group 0."""
   for kind, centre in zip(KINDS, CENTRES):
     hfield = spec.add_hfield(name=kind, nrow=N, ncol=N, size=[TILE / 2.0, TILE / 2.0, HEIGHT, BASE])
     hfield.userdata = elevation(kind).ravel().tolist()
@@ -71,6 +67,15 @@ def build() -> mujoco.MjSpec:
     if kind == "stairs":
       _add_stairs(spec, centre)
   spec.worldbody.add_light(pos=[0, 0, 3], dir=[0, 0, -1])
+
+
+def build() -> mujoco.MjSpec:
+  """The scene as an MjSpec: the tiles and the four robots with their drives."""
+  spec = mujoco.MjSpec()
+  spec.modelname = "quadruped_rough"
+  spec.option.timestep = 0.002
+  spec.compiler.degree = False
+  add_tiles(spec)
   for k, (centre, offset) in enumerate(zip(CENTRES, OFFSETS)):
     go1 = mujoco.MjSpec.from_file(os.path.join(HERE, "go1.xml"))  # attaching moves its bodies over
     frame = spec.worldbody.add_frame(pos=[centre[0] + offset[0], centre[1] + offset[1], 0.0])

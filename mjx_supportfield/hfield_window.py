@@ -239,6 +239,27 @@ def _job_ccd(hfield: Heightfield, bgeom: Geom, btype: int, tp: TerrainPair, code
 
 
 @wp.func
+def _through_border(hfield: Heightfield, r: int, c: int, normal: wp.vec3) -> bool:
+  """Whether a prism's answer leaves through the heightfield's outer side wall (a cell of its
+  first or last row or column, the normal within 60° of that wall's outward direction). The
+  walls between cells lie inside the terrain and their answers are dropped; the outer walls
+  bound it: a body sunk across the edge (a robot toppled off a tile) is pushed out through
+  them, as MuJoCo C's prisms push it."""
+  out = wp.vec2(0.0)
+  if c == 0:
+    out = wp.vec2(-1.0, 0.0)
+  elif c == hfield.ncol - 2:
+    out = wp.vec2(1.0, 0.0)
+  kept = out[0] * normal[0] >= 0.5
+  out = wp.vec2(0.0)
+  if r == 0:
+    out = wp.vec2(0.0, -1.0)
+  elif r == hfield.nrow - 2:
+    out = wp.vec2(0.0, 1.0)
+  return kept or out[1] * normal[1] >= 0.5
+
+
+@wp.func
 def _add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: Candidates, code: int, answer: wp.vec4,
                     normal: wp.vec3, spacing: float, tol: float) -> Candidates:
   """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to the
@@ -257,7 +278,8 @@ def _add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: Candi
   res.pos = wp.vec3(answer[0], answer[1], answer[2])
   res.normal = normal
   if job < 2:
-    if not _prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol, _uses_ccd(b, code)):
+    if not (_through_border(hfield, r, c, normal)
+            or _prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol, _uses_ccd(b, code))):
       return cands
   elif wp.dot(normal, na + nb) <= 0.0:
     return cands  # B's surface normal must point away from the terrain

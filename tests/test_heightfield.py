@@ -9,6 +9,7 @@ import mujoco_warp as mjw
 import numpy as np
 import pytest
 from conftest import MODELS
+from conftest import ROOT
 from conftest import angle_deg
 from conftest import contacts
 from conftest import load
@@ -380,3 +381,19 @@ def test_prism_contacts_need_nothing_of_the_epa_memory_before(dropped, monkeypat
   for other in found[1:]:
     for field in found[0]:
       np.testing.assert_array_equal(found[0][field], other[field], err_msg=field)
+
+
+def test_capsule_across_the_edge_is_pushed_out_through_the_border():
+  """humanoid_rough's G1 torso capsule (radius 9 cm) toppled across the wave tile's outer edge
+  (tests/data/repro/hfield_edge_capsule.xml): MuJoCo C pushes it out through the border prisms'
+  side walls, 92 mm deep along -x. The plugin dropped every side-wall answer (inside the terrain
+  between cells) and kept one contact 43 mm deep, and in the rollout let the capsule sink 113 mm
+  where MuJoCo C and stock stop it at 25 mm; the outer walls' answers are now kept: the deepest
+  contact of the pair within 10 % of MuJoCo C's."""
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "tests", "data", "repro", "hfield_edge_capsule.xml"))
+  sim = load(None, mjm=mjm, naconmax=128)
+  c_deepest = -min(c.dist for c in sim.mjd.contact[: sim.mjd.ncon])
+  sf.install(mjm, sim.m)
+  sf.collision(sim.m, sim.d)
+  got = contacts(sim.d, 0)
+  assert got.n > 0 and -got.dist.min() > 0.9 * c_deepest, (got.dist, c_deepest)

@@ -411,7 +411,13 @@ def window_funcs(mode: int) -> SimpleNamespace:
     res = mpr_refined(a, b, ms, scale, mpr_options.tolerance, mpr_options.iterations, mpr_options.refine,
                       RESTART_BEHIND)
     depth = wp.where(res.hit != 0 and res.depth > 0.0, res.depth, 0.0)
-    return wp.vec4(res.pos[0], res.pos[1], res.pos[2], depth), res.normal
+    pos = res.pos
+    if code % NJOB >= 2:
+      # a terrain point's contact lies on the normal through the point, its witness on the terrain:
+      # MPR's point slides along a tie of B's (a capsule lying across the point), as far as B's
+      # centre, cells away and off the terrain's surface
+      pos = a.pos + wp.dot(res.pos - a.pos, res.normal) * res.normal
+    return wp.vec4(pos[0], pos[1], pos[2], depth), res.normal
 
   @wp.func
   def _job_answer(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, code: int,

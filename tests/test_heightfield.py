@@ -397,3 +397,28 @@ def test_capsule_across_the_edge_is_pushed_out_through_the_border():
   sf.collision(sim.m, sim.d)
   got = contacts(sim.d, 0)
   assert got.n > 0 and -got.dist.min() > 0.9 * c_deepest, (got.dist, c_deepest)
+
+
+def test_terrain_point_contacts_stay_on_the_terrain():
+  """models/real/humanoid_rough.xml's first state: the G1s' foot capsules (1 cm radius, 18.6 cm
+  long) lie across several cells of the rough and wave tiles. MPR against a terrain point put a
+  contact where B's support tie ends (a capsule's centre), cells from the point and up to 28 mm
+  above the terrain. Every heightfield contact lies within compare's bound of the terrain
+  (|dist| / 2 + 1 mm), on the plugin's second (warm-started) call as in a rollout."""
+  from mjx_supportfield import compare
+  from mjx_supportfield import exact
+  from mjx_supportfield import real_scenes
+
+  mjm = real_scenes.load("humanoid_rough")
+  qpos = real_scenes.initial_data(mjm).qpos.copy()
+  ref = compare.mujoco_reference(mjm, qpos)
+  got = compare.warp_contacts(mjm, [qpos], plugin=sf.Options())[0]
+  hfields = [g for g in range(mjm.ngeom) if mjm.geom_type[g] == mujoco.mjtGeom.mjGEOM_HFIELD]
+  checked = 0
+  for c in got:
+    for g in set(c.geom) & set(hfields):
+      local = ref.xmat[g].T @ (c.pos - ref.xpos[g])
+      outside = exact.hfield_distance(mjm, int(mjm.geom_dataid[g]), local)
+      assert outside <= abs(c.dist) / 2 + 1e-3, f"{c.geom}: {outside * 1e3:.1f} mm off the terrain"
+      checked += 1
+  assert checked > 20

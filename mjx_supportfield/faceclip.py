@@ -161,11 +161,7 @@ class Picks:
   e6b: float
   e7a: float  # -u -v
   e7b: float
-  e0s: float  # how far each extreme lies along its direction
-  e1s: float
-  e2s: float
-  e3s: float
-  e4s: float
+  e4s: float  # how far each diagonal extreme lies along its direction (u ± v, unnormalised)
   e5s: float
   e6s: float
   e7s: float
@@ -246,15 +242,15 @@ def _new_picks() -> Picks:
   p.deep_a = 0.0
   p.deep_b = 0.0
   p.deep_h = FAR
-  # extremes start behind any corner, so that the first corner takes every slot
-  p.e0a = 0.0
+  # extremes start beyond any corner, so that the first corner takes every slot
+  p.e0a = -FAR
   p.e0b = 0.0
-  p.e1a = 0.0
+  p.e1a = FAR
   p.e1b = 0.0
   p.e2a = 0.0
-  p.e2b = 0.0
+  p.e2b = -FAR
   p.e3a = 0.0
-  p.e3b = 0.0
+  p.e3b = FAR
   p.e4a = 0.0
   p.e4b = 0.0
   p.e5a = 0.0
@@ -263,10 +259,6 @@ def _new_picks() -> Picks:
   p.e6b = 0.0
   p.e7a = 0.0
   p.e7b = 0.0
-  p.e0s = -FAR
-  p.e1s = -FAR
-  p.e2s = -FAR
-  p.e3s = -FAR
   p.e4s = -FAR
   p.e5s = -FAR
   p.e6s = -FAR
@@ -317,40 +309,34 @@ def _pick(p: Picks, a: float, b: float, h: float, band: float, spacing: float) -
     out.deep_a = a
     out.deep_b = b
     out.deep_h = h
-  along_u = a
-  along_v = b
-  if along_u > out.e0s:
+  if a > out.e0a:
     out.e0a = a
     out.e0b = b
-    out.e0s = along_u
-  if -along_u > out.e1s:
+  if a < out.e1a:
     out.e1a = a
     out.e1b = b
-    out.e1s = -along_u
-  if along_v > out.e2s:
+  if b > out.e2b:
     out.e2a = a
     out.e2b = b
-    out.e2s = along_v
-  if -along_v > out.e3s:
+  if b < out.e3b:
     out.e3a = a
     out.e3b = b
-    out.e3s = -along_v
-  if along_u + along_v > out.e4s:
+  if a + b > out.e4s:
     out.e4a = a
     out.e4b = b
-    out.e4s = along_u + along_v
-  if along_u - along_v > out.e5s:
+    out.e4s = a + b
+  if a - b > out.e5s:
     out.e5a = a
     out.e5b = b
-    out.e5s = along_u - along_v
-  if along_v - along_u > out.e6s:
+    out.e5s = a - b
+  if b - a > out.e6s:
     out.e6a = a
     out.e6b = b
-    out.e6s = along_v - along_u
-  if -along_u - along_v > out.e7s:
+    out.e6s = b - a
+  if -a - b > out.e7s:
     out.e7a = a
     out.e7b = b
-    out.e7s = -along_u - along_v
+    out.e7s = -a - b
   return out
 
 

@@ -245,18 +245,9 @@ def _through_border(hfield: Heightfield, r: int, c: int, normal: wp.vec3) -> boo
   walls between cells lie inside the terrain and their answers are dropped; the outer walls
   bound it: a body sunk across the edge (a robot toppled off a tile) is pushed out through
   them, as MuJoCo C's prisms push it."""
-  out = wp.vec2(0.0)
-  if c == 0:
-    out = wp.vec2(-1.0, 0.0)
-  elif c == hfield.ncol - 2:
-    out = wp.vec2(1.0, 0.0)
-  kept = out[0] * normal[0] >= 0.5
-  out = wp.vec2(0.0)
-  if r == 0:
-    out = wp.vec2(0.0, -1.0)
-  elif r == hfield.nrow - 2:
-    out = wp.vec2(0.0, 1.0)
-  return kept or out[1] * normal[1] >= 0.5
+  out_x = wp.where(c == 0, -1.0, wp.where(c == hfield.ncol - 2, 1.0, 0.0))
+  out_y = wp.where(r == 0, -1.0, wp.where(r == hfield.nrow - 2, 1.0, 0.0))
+  return out_x * normal[0] >= 0.5 or out_y * normal[1] >= 0.5
 
 
 @wp.func

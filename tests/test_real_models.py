@@ -31,9 +31,9 @@ def _rollout_end(name: str) -> tuple[mujoco.MjModel, mujoco.MjData, dict]:
   return mjm, mjd, ref
 
 
-def _terrain_script():
-  """models/real/make_quadruped_terrain.py as a module."""
-  spec = importlib.util.spec_from_file_location("make_quadruped_terrain", os.path.join(REAL, "make_quadruped_terrain.py"))
+def _script(name: str):
+  """models/real/<name>.py (a scene's script) as a module."""
+  spec = importlib.util.spec_from_file_location(name, os.path.join(REAL, f"{name}.py"))
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module
@@ -119,7 +119,7 @@ def test_replay_repeats_mujoco_own_rollout():
 
 
 def test_quadruped_terrain_is_what_its_script_writes():
-  spec = _terrain_script().build()
+  spec = _script("make_quadruped_terrain").build()
   committed = mujoco.MjModel.from_xml_path(os.path.join(REAL, "quadruped_terrain.xml"))
   built = spec.compile()
   np.testing.assert_allclose(committed.hfield_data, built.hfield_data, atol=1e-5)  # the MJCF keeps 6 digits
@@ -127,21 +127,15 @@ def test_quadruped_terrain_is_what_its_script_writes():
 
 
 def test_quadruped_rough_is_what_its_script_writes():
-  spec = importlib.util.spec_from_file_location("make_quadruped_rough", os.path.join(REAL, "make_quadruped_rough.py"))
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
   committed = mujoco.MjModel.from_xml_path(os.path.join(REAL, "quadruped_rough.xml"))
-  built = module.build().compile()
+  built = _script("make_quadruped_rough").build().compile()
   np.testing.assert_allclose(committed.hfield_data, built.hfield_data, atol=1e-5)  # the MJCF keeps 6 digits
   assert committed.nu == built.nu == 48 and committed.nhfield == 4 and committed.nkey == 1
 
 
 def test_humanoid_rough_is_what_its_script_writes():
-  spec = importlib.util.spec_from_file_location("make_humanoid_rough", os.path.join(REAL, "make_humanoid_rough.py"))
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
   committed = mujoco.MjModel.from_xml_path(os.path.join(REAL, "humanoid_rough.xml"))
-  built = module.build().compile()
+  built = _script("make_humanoid_rough").build().compile()
   np.testing.assert_allclose(committed.hfield_data, built.hfield_data, atol=1e-5)
   np.testing.assert_allclose(committed.actuator_gainprm[:, 0], built.actuator_gainprm[:, 0], rtol=1e-5)
   assert committed.nu == built.nu == 58 and committed.nkey == 1

@@ -21,6 +21,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 import make_quadruped_rough as grid  # noqa: E402
+import make_quadruped_terrain as single  # noqa: E402
 
 NATURAL_FREQ = 10 * 2.0 * math.pi
 DAMPING_RATIO = 2.0
@@ -111,12 +112,8 @@ def _foot_gap(mjm: mujoco.MjModel, qpos: np.ndarray, prefix: str) -> float:
       continue
     axis_z = abs(mjd.geom_xmat[g][8])
     lowest = mjd.geom_xpos[g][2] - mjm.geom_size[g][0] - mjm.geom_size[g][1] * axis_z
-    geomid = np.array([-1], dtype=np.int32)
-    start = mjd.geom_xpos[g].copy()
-    start[2] = 2.0
-    ground = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)  # the tiles and steps; the robots' geoms are group 3
-    height = 2.0 - mujoco.mj_ray(mjm, mjd, start, np.array([0.0, 0.0, -1.0]), ground, 1, -1, geomid)
-    assert geomid[0] >= 0, f"the ray under {name} missed the ground"
+    height, hit = single.ground_under(mjm, mjd, mjd.geom_xpos[g], 2.0)
+    assert hit >= 0, f"the ray under {name} missed the ground"
     gaps.append(lowest - height)
   return min(gaps)
 

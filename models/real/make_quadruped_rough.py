@@ -81,22 +81,8 @@ def build() -> mujoco.MjSpec:
     frame = spec.worldbody.add_frame(pos=[centre[0] + offset[0], centre[1] + offset[1], 0.0])
     frame.attach_body(go1.body("trunk"), f"r{k}_", "")
   for k in range(len(CENTRES)):
-    _add_actuators(spec, f"r{k}_")
+    single.add_actuators(spec, f"r{k}_")
   return spec
-
-
-def _add_actuators(spec: mujoco.MjSpec, prefix: str) -> None:
-  """mjlab's drives on one robot's joints (make_quadruped_terrain's, names prefixed)."""
-  for leg in single.LEGS:
-    for part, gear, effort in (("hip", single.HIP_GEAR, single.HIP_EFFORT), ("thigh", single.HIP_GEAR, single.HIP_EFFORT),
-                               ("calf", single.KNEE_GEAR, single.KNEE_EFFORT)):
-      joint = spec.joint(f"{prefix}{leg}_{part}_joint")
-      armature, kp, kv = single._drive(gear)
-      joint.armature = armature
-      act = spec.add_actuator(name=f"{prefix}{leg}_{part}", target=joint.name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-      act.set_to_position(kp=kp, kv=kv)
-      act.forcerange = [-effort, effort]
-      act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
 
 
 def _foot_gap(mjm: mujoco.MjModel, qpos: np.ndarray, prefix: str) -> float:
@@ -107,12 +93,8 @@ def _foot_gap(mjm: mujoco.MjModel, qpos: np.ndarray, prefix: str) -> float:
   gaps = []
   for leg in single.LEGS:
     foot = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, f"{prefix}{leg}_foot_collision")
-    geomid = np.array([-1], dtype=np.int32)
-    start = mjd.geom_xpos[foot].copy()
-    start[2] = 2.0
-    ground = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)  # the tiles and steps; the robots' geoms are group 3
-    height = 2.0 - mujoco.mj_ray(mjm, mjd, start, np.array([0.0, 0.0, -1.0]), ground, 1, -1, geomid)
-    assert geomid[0] >= 0, f"the ray under {prefix}{leg} missed the ground"
+    height, hit = single.ground_under(mjm, mjd, mjd.geom_xpos[foot], 2.0)
+    assert hit >= 0, f"the ray under {prefix}{leg} missed the ground"
     gaps.append(mjd.geom_xpos[foot][2] - mjm.geom_size[foot][0] - height)
   return min(gaps)
 

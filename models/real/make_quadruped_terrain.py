@@ -47,14 +47,15 @@ def _drive(gear: float) -> tuple[float, float, float]:
   return armature, armature * NATURAL_FREQ**2, 2 * DAMPING_RATIO * armature * NATURAL_FREQ
 
 
-def _add_actuators(spec: mujoco.MjSpec) -> None:
+def add_actuators(spec: mujoco.MjSpec, prefix: str = "") -> None:
+  """mjlab's drives on the joints of the Go1 whose names start with ``prefix``."""
   for leg in LEGS:
     for part, gear, effort in (("hip", HIP_GEAR, HIP_EFFORT), ("thigh", HIP_GEAR, HIP_EFFORT),
                                ("calf", KNEE_GEAR, KNEE_EFFORT)):
-      joint = spec.joint(f"{leg}_{part}_joint")
+      joint = spec.joint(f"{prefix}{leg}_{part}_joint")
       armature, kp, kv = _drive(gear)
       joint.armature = armature
-      act = spec.add_actuator(name=f"{leg}_{part}", target=joint.name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+      act = spec.add_actuator(name=f"{prefix}{leg}_{part}", target=joint.name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
       act.set_to_position(kp=kp, kv=kv)
       act.forcerange = [-effort, effort]
       act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
@@ -67,6 +68,16 @@ def _init_joints() -> list[float]:
   return q
 
 
+def ground_under(mjm: mujoco.MjModel, mjd: mujoco.MjData, point: np.ndarray, top: float) -> tuple[float, int]:
+  """The height of the ground (geom group 0: the terrain; the robots' geoms are group 3) straight
+  under ``point``, cast down from height ``top``, and the geom it hit (-1: none)."""
+  geomid = np.array([-1], dtype=np.int32)
+  start = np.array([point[0], point[1], top])
+  ground = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)
+  height = top - mujoco.mj_ray(mjm, mjd, start, np.array([0.0, 0.0, -1.0]), ground, 1, -1, geomid)
+  return height, int(geomid[0])
+
+
 def _foot_gap(mjm: mujoco.MjModel, qpos: np.ndarray) -> float:
   """Smallest distance from a foot sphere to the terrain, straight down (negative: sunk)."""
   mjd = mujoco.MjData(mjm)
@@ -76,12 +87,8 @@ def _foot_gap(mjm: mujoco.MjModel, qpos: np.ndarray) -> float:
   gaps = []
   for leg in LEGS:
     foot = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_GEOM, f"{leg}_foot_collision")
-    geomid = np.array([-1], dtype=np.int32)
-    start = mjd.geom_xpos[foot].copy()
-    start[2] = 1.0
-    only_group0 = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)  # the terrain; the robot's geoms are group 3
-    height = 1.0 - mujoco.mj_ray(mjm, mjd, start, np.array([0.0, 0.0, -1.0]), only_group0, 1, -1, geomid)
-    assert geomid[0] == terrain, f"the ray under {leg} missed the terrain"
+    height, hit = ground_under(mjm, mjd, mjd.geom_xpos[foot], 1.0)
+    assert hit == terrain, f"the ray under {leg} missed the terrain"
     gaps.append(mjd.geom_xpos[foot][2] - mjm.geom_size[foot][0] - height)
   return min(gaps)
 
@@ -95,7 +102,7 @@ def build() -> mujoco.MjSpec:
   hfield.userdata = elevation().ravel().tolist()
   spec.worldbody.add_geom(name="terrain", type=mujoco.mjtGeom.mjGEOM_HFIELD, hfieldname="bumps")
   spec.worldbody.add_light(pos=[0, 0, 2], dir=[0, 0, -1])
-  _add_actuators(spec)
+  add_actuators(spec)
   return spec
 
 

@@ -72,6 +72,7 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import vec5
 
+from mjx_supportfield.candidates import Candidates
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
@@ -99,6 +100,8 @@ from mjx_supportfield.hfield_window import (
   PrismCcd,
   TerrainPair,
   _terrain_pair,
+  _closed_form,
+  closed_form_pass,
   _uses_ccd,
   _ccd_geom,
   _job_ccd,
@@ -193,7 +196,8 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       kept_mask = vec_kept()
       nkept = int(0)
       n = int(0)  # jobs counted (first sweep), then queued
-      for sweep in range(nsweep):
+      # a sphere or a capsule within the grid has no MPR jobs: hfield_contacts answers it in closed form
+      for sweep in range(wp.where(_closed_form(b, tp, hfield), 0, nsweep)):
         cell = int(0)
         if sweep == 1:
           if nkept < KEPT_CELLS or n >= tp.job_count:
@@ -453,7 +457,11 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       terrain, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
       hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
       spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
-      cands = _plane_pass(hfield, b, ms, tp, spacing)
+      cands = Candidates()
+      if _closed_form(b, tp, hfield):
+        cands = closed_form_pass(hfield, b, tp, spacing)
+      else:
+        cands = _plane_pass(hfield, b, ms, tp, spacing)
       for j in range(tp.job_start, tp.job_start + tp.job_count):
         cands = _add_job_answer(hfield, tp, b, cands, hfield_job_in[j][1], answer_in[j], normal_in[j], spacing,
                                 mpr_options.tolerance)

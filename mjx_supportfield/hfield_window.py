@@ -17,6 +17,7 @@ import warp as wp
 from mujoco_warp._src.collision_core import Geom
 from mujoco_warp._src.collision_core import geom_collision_pair
 from mujoco_warp._src.collision_gjk import ccd
+from mujoco_warp._src.math import closest_segment_to_segment_points
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.candidates import NCANDIDATE
@@ -37,6 +38,7 @@ from mjx_supportfield.hfield_cells import _point_shape
 from mjx_supportfield.hfield_cells import _prism_answer_kept
 from mjx_supportfield.hfield_cells import _prism_geom
 from mjx_supportfield.hfield_cells import _prism_shape
+from mjx_supportfield.hfield_cells import _vertex
 from mjx_supportfield.hfield_cells import outside_walls_func
 from mjx_supportfield.mpr import MprResult
 from mjx_supportfield.mpr import MprSettings
@@ -44,6 +46,7 @@ from mjx_supportfield.mpr import mpr_funcs
 from mjx_supportfield.routing import NGEOMTYPE
 from mjx_supportfield.shapes import posed_shape
 from mjx_supportfield.support import support_funcs
+from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -167,6 +170,273 @@ def _round(b: Shape) -> bool:
   ridge)."""
   return b.gtype == GeomType.SPHERE or b.gtype == GeomType.CAPSULE or b.gtype == GeomType.ELLIPSOID or (
     b.gtype == GeomType.CYLINDER)
+
+
+@wp.func
+def _closed_form(b: Shape, tp: TerrainPair, hfield: Heightfield) -> bool:
+  """Whether the pair takes the closed-form pass (closed_form_pass) instead of the plane pass
+  and MPR jobs: B is a sphere or a capsule (a leg's foot or shin) and stays within the grid's
+  outer edge, whose side walls only the prisms' MPR answers see."""
+  if b.gtype != GeomType.SPHERE and b.gtype != GeomType.CAPSULE:
+    return False
+  return (tp.lo[0] > -hfield.size[0] and tp.hi[0] < hfield.size[0] and tp.lo[1] > -hfield.size[1]
+          and tp.hi[1] < hfield.size[1])
+
+
+# where on a triangle its nearest point to a point lies (_closest_on_triangle): inside, or on
+# the edge k = 0 (v0 v1), 1 (v1 v2), 2 (v2 v0), or at the corner k (between edges k - 1 and k)
+ON_FACE = wp.constant(0)
+ON_EDGE = wp.constant(1)
+ON_CORNER = wp.constant(2)
+
+
+@wp.func
+def _closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> tuple[wp.vec3, wp.vec2i]:
+  """The point of triangle abc nearest to p and where it lies: (ON_FACE, 0), (ON_EDGE, edge) or
+  (ON_CORNER, corner), by the triangle's Voronoi regions (Ericson, Real-Time Collision
+  Detection, 5.1.5)."""
+  ab = b - a
+  ac = c - a
+  ap = p - a
+  d1 = wp.dot(ab, ap)
+  d2 = wp.dot(ac, ap)
+  if d1 <= 0.0 and d2 <= 0.0:
+    return a, wp.vec2i(ON_CORNER, 0)
+  bp = p - b
+  d3 = wp.dot(ab, bp)
+  d4 = wp.dot(ac, bp)
+  if d3 >= 0.0 and d4 <= d3:
+    return b, wp.vec2i(ON_CORNER, 1)
+  vc = d1 * d4 - d3 * d2
+  if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+    return a + (d1 / (d1 - d3)) * ab, wp.vec2i(ON_EDGE, 0)
+  cp = p - c
+  d5 = wp.dot(ab, cp)
+  d6 = wp.dot(ac, cp)
+  if d6 >= 0.0 and d5 <= d6:
+    return c, wp.vec2i(ON_CORNER, 2)
+  vb = d5 * d2 - d1 * d6
+  if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+    return a + (d2 / (d2 - d6)) * ac, wp.vec2i(ON_EDGE, 2)
+  va = d3 * d6 - d5 * d4
+  if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
+    return b + ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * (c - b), wp.vec2i(ON_EDGE, 1)
+  denom = 1.0 / (va + vb + vc)
+  return a + (vb * denom) * ab + (vc * denom) * ac, wp.vec2i(ON_FACE, 0)
+
+
+@wp.func
+def _flat_edge(hfield: Heightfield, dx: float, dy: float, r: int, c: int, t: int, k: int, v0: wp.vec3, n: wp.vec3,
+               eps: float) -> bool:
+  """Whether edge k of triangle t of cell (r, c) (t = 0: p00 p10 p11, t = 1: p00 p11 p01) lies
+  flat between its two triangles: the far corner of the triangle across it on this one's plane.
+  The grid's outer edges are never flat."""
+  fr = r
+  fc = c
+  if t == 0:
+    fr = wp.where(k == 0, r, wp.where(k == 1, r + 2, r))
+    fc = wp.where(k == 0, c - 1, c + 1)
+  else:
+    fr = wp.where(k == 0, r + 1, wp.where(k == 1, r + 1, r - 1))
+    fc = wp.where(k == 0, c, wp.where(k == 1, c + 2, c))
+  if fr < 0 or fr >= hfield.nrow or fc < 0 or fc >= hfield.ncol:
+    return False
+  return wp.abs(wp.dot(n, _vertex(hfield, dx, dy, fr, fc) - v0)) <= eps
+
+
+@wp.func
+def _flat_feature(hfield: Heightfield, dx: float, dy: float, r: int, c: int, t: int, at: wp.vec2i, v0: wp.vec3,
+                  n: wp.vec3, eps: float) -> bool:
+  """Whether the edge or corner ``at`` (_closest_on_triangle) of triangle t of cell (r, c) lies
+  flat: the edge (_flat_edge), or both edges of the corner."""
+  if at[0] == ON_EDGE:
+    return _flat_edge(hfield, dx, dy, r, c, t, at[1], v0, n, eps)
+  return _flat_edge(hfield, dx, dy, r, c, t, at[1], v0, n, eps) and _flat_edge(hfield, dx, dy, r, c, t, (at[1] + 2) % 3,
+                                                                               v0, n, eps)
+
+
+@wp.func
+def _clip_xy(p0: wp.vec3, p1: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec2:
+  """The part of segment p0 p1 whose projection along z falls in triangle abc's: (t0, t1) along
+  the segment, empty when t0 > t1."""
+  t0 = float(0.0)
+  t1 = float(1.0)
+  area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+  for k in range(3):
+    e0 = wp.where(k == 0, a, wp.where(k == 1, b, c))
+    e1 = wp.where(k == 0, b, wp.where(k == 1, c, a))
+    # inside the edge's half plane where the signed area with the edge has the triangle's sign
+    f0 = area * ((e1[0] - e0[0]) * (p0[1] - e0[1]) - (e1[1] - e0[1]) * (p0[0] - e0[0]))
+    f1 = area * ((e1[0] - e0[0]) * (p1[1] - e0[1]) - (e1[1] - e0[1]) * (p1[0] - e0[0]))
+    if f0 < 0.0 and f1 < 0.0:
+      return wp.vec2(1.0, 0.0)
+    if f0 < 0.0:
+      t0 = wp.max(t0, f0 / (f0 - f1))
+    elif f1 < 0.0:
+      t1 = wp.min(t1, f0 / (f0 - f1))
+  return wp.vec2(t0, t1)
+
+
+@wp.func
+def _add_answer(cands: Candidates, x: wp.vec3, q: wp.vec3, r: float, band: float, spacing: float) -> Candidates:
+  """The answer of B's axis point x (a sphere's centre, a point of a capsule's axis; radius r)
+  against terrain point q below it: normal from q to x, B's point r from x against it."""
+  w = x - q
+  length = wp.length(w)
+  depth = band + r - length
+  if depth <= 0.0 or length < 1.0e-9 * r:
+    return cands
+  u = w / length
+  return add_candidate(cands, x - r * u + 0.5 * depth * u, u, depth, spacing)
+
+
+@wp.func
+def _feature_answer(cands: Candidates, x: wp.vec3, q: wp.vec3, n: wp.vec3, v0: wp.vec3, rad: float, band: float,
+                    spacing: float, flat: bool) -> Candidates:
+  """The answer of a ball of radius ``rad`` at x against point q of a triangle's edge or corner
+  (normal n, corner v0): from q toward x (_add_answer) on a ridge or in a fold; on an edge or a
+  corner lying flat, along the triangle's normal at q, as deep as the ball reaches below the
+  plane there (MuJoCo's prism beside the one under the ball answers there too, and the surface
+  there is the plane: a normal tilted toward the edge would push a ball lying on a plane
+  sideways)."""
+  if not flat:
+    return _add_answer(cands, x, q, rad, band, spacing)
+  height = wp.dot(n, x - v0)
+  across = x - height * n - q
+  reach = rad * rad - wp.dot(across, across)
+  if reach <= 0.0:
+    return cands
+  depth = band + wp.sqrt(reach) - height
+  if depth <= 0.0:
+    return cands
+  return add_candidate(cands, q - 0.5 * depth * n + band * n, n, depth, spacing)
+
+
+@wp.func
+def _segment_nearest(x0: wp.vec3, s0: wp.vec3, s1: wp.vec3, v0: wp.vec3, v1: wp.vec3,
+                     v2: wp.vec3) -> tuple[wp.vec3, wp.vec3, wp.vec2i]:
+  """Of segment s0 s1 and triangle v0 v1 v2, the nearest pair of points: the segment's point,
+  the triangle's and where that lies (_closest_on_triangle). Tried in order, a nearer pair
+  winning: x0 (a point of the segment), the segment's ends, then the triangle's edges."""
+  best_x = x0
+  best_q, best_at = _closest_on_triangle(x0, v0, v1, v2)
+  for k in range(2):
+    x = wp.where(k == 0, s0, s1)
+    q, at = _closest_on_triangle(x, v0, v1, v2)
+    if wp.length(x - q) < wp.length(best_x - best_q):
+      best_x = x
+      best_q = q
+      best_at = at
+  for k in range(3):
+    e0 = wp.where(k == 0, v0, wp.where(k == 1, v1, v2))
+    e1 = wp.where(k == 0, v1, wp.where(k == 1, v2, v0))
+    x, q = closest_segment_to_segment_points(s0, s1, e0, e1)
+    if wp.length(x - q) < wp.length(best_x - best_q):
+      best_x = x
+      best_q = q
+      best_at = wp.vec2i(ON_EDGE, k)
+  return best_x, best_q, best_at
+
+
+@wp.func
+def _nearest_answer(cands: Candidates, hfield: Heightfield, dx: float, dy: float, r: int, c: int, t: int, v0: wp.vec3,
+                    n: wp.vec3, x: wp.vec3, q: wp.vec3, at: wp.vec2i, rad: float, band: float, spacing: float,
+                    eps: float) -> Candidates:
+  """The answer of a ball of radius ``rad`` at x against q, the point of triangle t of cell (r, c)
+  (corner v0, normal n) nearest to it, which lies where ``at`` says (_closest_on_triangle): along
+  the normal inside the triangle, else from an edge or a corner (_feature_answer); none where x
+  lies below the triangle (over another one)."""
+  if at[0] == ON_FACE:
+    depth = band + rad - wp.dot(n, x - v0)
+    if depth > 0.0:
+      cands = add_candidate(cands, x - rad * n + 0.5 * depth * n, n, depth, spacing)
+  elif wp.dot(x - q, n) > 0.0:
+    cands = _feature_answer(cands, x, q, n, v0, rad, band, spacing,
+                            _flat_feature(hfield, dx, dy, r, c, t, at, v0, n, eps))
+  return cands
+
+
+@wp.func
+def _point_answer(cands: Candidates, hfield: Heightfield, dx: float, dy: float, r: int, c: int, t: int, v0: wp.vec3,
+                  v1: wp.vec3, v2: wp.vec3, n: wp.vec3, x: wp.vec3, rad: float, band: float, spacing: float,
+                  eps: float) -> Candidates:
+  """The answer of a ball of radius ``rad`` at x (a sphere, a point of a capsule's axis) against
+  triangle t of cell (r, c) (corners v0 v1 v2, normal n), from x's nearest point of the triangle
+  (_nearest_answer)."""
+  q, at = _closest_on_triangle(x, v0, v1, v2)
+  return _nearest_answer(cands, hfield, dx, dy, r, c, t, v0, n, x, q, at, rad, band, spacing, eps)
+
+
+@wp.func
+def _triangle_answers(cands: Candidates, hfield: Heightfield, b: Shape, r: int, c: int, t: int, band: float,
+                      spacing: float) -> Candidates:
+  """Triangle t of cell (r, c)'s answer (t = 0: p00 p10 p11, t = 1: p00 p11 p01), as MuJoCo gives
+  one contact a triangle prism (less the prism's side walls, which lie inside the terrain). A
+  sphere: the triangle's point nearest its centre (along the normal where that lies inside the
+  triangle). A capsule: of the part of its axis that lies over the triangle (seen along z), where
+  the part reaches the triangle's plane its end nearest the plane (its middle where the axis lies
+  parallel to the plane), else its point nearest the triangle (mid-part over a ridge); and the
+  capsule's own ends that the part holds (a capsule lying on the terrain rests on its ends, as
+  the plane pass gives them to any geom). Where no part lies over the triangle, the axis point
+  nearest to it (a ridge or a peak poking into the capsule's side, a steep triangle beside an
+  end). Each point is answered as a ball there (_nearest_answer)."""
+  dx, dy = _cell_size(hfield)
+  eps = 1.0e-6 * (dx + dy + hfield.size[2])
+  p00, p01, p10, p11, na, nb = _cell(hfield, dx, dy, r, c)
+  v0 = p00
+  v1 = wp.where(t == 0, p10, p11)
+  v2 = wp.where(t == 0, p11, p01)
+  n = wp.where(t == 0, na, nb)
+  rad = b.size[0]
+  if b.gtype == GeomType.SPHERE:
+    return _point_answer(cands, hfield, dx, dy, r, c, t, v0, v1, v2, n, b.pos, rad, band, spacing, eps)
+  axis = wp.vec3(b.rot[0, 2], b.rot[1, 2], b.rot[2, 2]) * b.size[1]
+  p0 = b.pos - axis
+  p1 = b.pos + axis
+  span = _clip_xy(p0, p1, v0, v1, v2)
+  if span[0] > span[1]:
+    # no part of the axis over the triangle: a ridge or a peak poking into the capsule's side,
+    # or a steep triangle beside an end
+    x, q, at = _segment_nearest(p0, p0, p1, v0, v1, v2)
+    return _nearest_answer(cands, hfield, dx, dy, r, c, t, v0, n, x, q, at, rad, band, spacing, eps)
+  s0 = p0 + span[0] * (p1 - p0)
+  s1 = p0 + span[1] * (p1 - p0)
+  h0 = wp.dot(n, s0 - v0)
+  h1 = wp.dot(n, s1 - v0)
+  # a tie (the axis parallel to the triangle): the part's middle
+  deepest = wp.where(h0 <= h1, span[0], span[1])
+  if wp.abs(h0 - h1) <= 1.0e-3 * rad:
+    deepest = 0.5 * (span[0] + span[1])
+  xd = p0 + deepest * (p1 - p0)
+  if wp.min(h0, h1) <= 0.0:  # the axis reaches the plane over the triangle: the plane's answer
+    cands = _point_answer(cands, hfield, dx, dy, r, c, t, v0, v1, v2, n, xd, rad, band, spacing, eps)
+  else:  # above it: the part's point nearest to the triangle (over a ridge or a fold, mid-part)
+    x, q, at = _segment_nearest(xd, s0, s1, v0, v1, v2)
+    cands = _nearest_answer(cands, hfield, dx, dy, r, c, t, v0, n, x, q, at, rad, band, spacing, eps)
+  for k in range(2):  # the capsule's own ends over the triangle
+    along = float(k)
+    if along < span[0] or along > span[1] or along == deepest:
+      continue
+    cands = _point_answer(cands, hfield, dx, dy, r, c, t, v0, v1, v2, n, p0 + along * (p1 - p0), rad, band, spacing,
+                          eps)
+  return cands
+
+
+@wp.func
+def closed_form_pass(hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: float) -> Candidates:
+  """A sphere's or a capsule's contacts with the terrain under it in closed form, one thread a
+  pair with no MPR: each triangle's answer (_triangle_answers)."""
+  cands = empty_with_room(NCANDIDATE)
+  dx, dy = _cell_size(hfield)
+  ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
+  for cell in range(ncell):
+    r, c = _window_cell(tp, cell)
+    if _above_cell(tp, _vertex(hfield, dx, dy, r, c), _vertex(hfield, dx, dy, r, c + 1),
+                   _vertex(hfield, dx, dy, r + 1, c), _vertex(hfield, dx, dy, r + 1, c + 1)):
+      continue
+    cands = _triangle_answers(cands, hfield, b, r, c, 0, tp.band, spacing)
+    cands = _triangle_answers(cands, hfield, b, r, c, 1, tp.band, spacing)
+  return cands
 
 
 @wp.func

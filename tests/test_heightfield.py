@@ -66,10 +66,44 @@ def test_sphere_on_slope_gets_the_analytic_normal():
   r, depth = 0.1, 0.01
   centre = np.array([0.13, 0.07, 0.25 * 1.13]) + (r - depth) * normal
   ball = f'<body pos="{centre[0]} {centre[1]} {centre[2]}"><freejoint/><geom type="sphere" size="{r}"/></body>'
-  _, c = _plugin_contacts(_hfield_xml(np.tile(z / 0.5, (5, 1)), (1, 1, 0.5, 0.1), ball))
-  assert c.n == 1
-  assert angle_deg(c.normal[0], normal) < 0.01
-  assert abs(-c.dist[0] - depth) < 1e-6
+  sim, c = _plugin_contacts(_hfield_xml(np.tile(z / 0.5, (5, 1)), (1, 1, 0.5, 0.1), ball))
+  # MuJoCo C's contacts: the analytic one, and where the ball reaches over the corner of the
+  # next cell's triangle a shallow one of that prism (its normal tilted 26 deg toward the
+  # corner). The plugin gives both points, each along the slope's normal
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  assert c.n == len(ref) == 2
+  for pos in ref.pos:
+    assert np.linalg.norm(c.pos - pos, axis=1).min() < 1e-4
+  for k in range(c.n):
+    assert angle_deg(c.normal[k], normal) < 0.01
+  assert abs(-c.dist.min() - depth) < 1e-6
+
+
+def test_capsule_across_a_slope_in_closed_form():
+  """A capsule the size of a G1 foot's (1 cm radius, 18 cm between its ends) lying 1 mm deep
+  along a plane slope, across cells and their diagonals: the closed-form pass (no MPR job: none
+  left beyond a queue of one) gives the slope's normal and depth at every contact, from one end
+  of the capsule to the other, and no contact beside it on the triangles' flat edges."""
+  x = np.linspace(-1.0, 1.0, 21)  # 10 cm cells
+  z = 0.25 * (x + 1.0)
+  normal = np.array([-0.25, 0.0, 1.0]) / np.linalg.norm([-0.25, 0.0, 1.0])
+  along = np.array([1.0, 0.0, 0.25]) / np.linalg.norm([1.0, 0.0, 0.25])
+  r, half, depth = 0.01, 0.09, 0.001
+  centre = np.array([0.03, 0.02, 0.25 * 1.03]) + (r - depth) * normal
+  capsule = (f'<body pos="{centre[0]} {centre[1]} {centre[2]}"><freejoint/><geom type="capsule" size="{r} {half}" '
+             f'zaxis="{along[0]} {along[1]} {along[2]}"/></body>')
+  sim = load(_hfield_xml(np.tile(z / 0.5, (21, 1)), (1, 1, 0.5, 0.1), capsule))
+  collider = sf.install(sim.mjm, sim.m, sf.Options(hfield_mprs_per_pair=1))
+  sf.collision(sim.m, sim.d)
+  c = contacts(sim.d, 0)
+  assert collider.stats(sim.d)["hfield_mprs_unqueued"] == 0
+  assert c.n >= 2
+  for k in range(c.n):
+    assert angle_deg(c.normal[k], normal) < 0.01
+    assert abs(-c.dist[k] - depth) < 1e-5
+  ends = [centre + s * half * along - (r - depth / 2) * normal for s in (-1.0, 1.0)]
+  for end in ends:
+    assert np.linalg.norm(c.pos - end, axis=1).min() < 1e-4, (end, c.pos)
 
 
 def test_ridge_poking_into_a_sphere():

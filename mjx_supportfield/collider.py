@@ -146,6 +146,8 @@ class Collider:
       on_hfield = t1 == GeomType.HFIELD  # bounds its kernels' pairs; boxes and meshes collide prisms by GJK/EPA
       self.hfield_pairs_per_world = min(int((on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))).sum()), npair_max)
       self.hfield_ccd = bool((on_hfield & np.isin(t2, [int(GeomType.BOX), int(GeomType.MESH)])).any())
+      # spheres and capsules on terrain: heightfield.py's closed-form kernel (hfield_closed_form.py)
+      self.hfield_closed_form = bool((on_hfield & np.isin(t2, [int(GeomType.SPHERE), int(GeomType.CAPSULE)])).any())
       self.hfield_ccd_iterations = int(mjm.opt.ccd_iterations)
       # non-convex meshes: their own triangles' SDFs
       ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)

@@ -72,7 +72,6 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import vec5
 
-from mjx_supportfield.candidates import Candidates
 from mjx_supportfield.candidates import write_candidates
 from mjx_supportfield.contact_quota import ContactQuota
 from mjx_supportfield.contact_quota import contact_outputs
@@ -81,6 +80,8 @@ from mjx_supportfield.mpr import settings_of
 from mjx_supportfield.narrowphase import GRID_THREADS
 from mjx_supportfield.narrowphase import HEAVY_REGISTERS
 from mjx_supportfield.hfield_cells import heightfield
+from mjx_supportfield.hfield_closed_form import closed_form
+from mjx_supportfield.hfield_closed_form import hfield_closed_form
 from mjx_supportfield.types import SUPPORT_MODE_ID
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import mode_module
@@ -100,8 +101,6 @@ from mjx_supportfield.hfield_window import (
   PrismCcd,
   TerrainPair,
   _terrain_pair,
-  _closed_form,
-  closed_form_pass,
   _uses_ccd,
   _ccd_geom,
   _job_ccd,
@@ -197,7 +196,7 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       nkept = int(0)
       n = int(0)  # jobs counted (first sweep), then queued
       # a sphere or a capsule within the grid has no MPR jobs: hfield_contacts answers it in closed form
-      for sweep in range(wp.where(_closed_form(b, tp, hfield), 0, nsweep)):
+      for sweep in range(wp.where(closed_form(b, tp, hfield.size), 0, nsweep)):
         cell = int(0)
         if sweep == 1:
           if nkept < KEPT_CELLS or n >= tp.job_count:
@@ -439,8 +438,8 @@ def stage_kernels(mode: int) -> SimpleNamespace:
     contact_adhesion_out: wp.array(dtype=float),
     nacon_out: wp.array(dtype=int),
   ):
-    """Last of the heightfield kernels, one thread a pair of hfield_jobs: the face contacts and
-    its MPR answers in job order (running those the queue had no room for), merged
+    """One thread a pair of hfield_jobs, except those hfield_closed_form answers: the face
+    contacts and its MPR answers in job order (running those the queue had no room for), merged
     (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
     tid = wp.tid()
     row = int(-1)  # this thread's row of EPA memory, taken when it first runs GJK/EPA beyond the queue
@@ -456,12 +455,15 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       )
       terrain, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
       hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
+      if tp.cut:
+        wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
+        if opt_warn_hfield:
+          wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
+                    "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
+      if closed_form(b, tp, hfield.size):
+        continue  # hfield_closed_form's
       spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
-      cands = Candidates()
-      if _closed_form(b, tp, hfield):
-        cands = closed_form_pass(hfield, b, tp, spacing)
-      else:
-        cands = _plane_pass(hfield, b, ms, tp, spacing)
+      cands = _plane_pass(hfield, b, ms, tp, spacing)
       for j in range(tp.job_start, tp.job_start + tp.job_count):
         cands = _add_job_answer(hfield, tp, b, cands, hfield_job_in[j][1], answer_in[j], normal_in[j], spacing,
                                 mpr_options.tolerance)
@@ -491,11 +493,6 @@ def stage_kernels(mode: int) -> SimpleNamespace:
           mask = mask >> 1
           job += 1
         code = (cell + 1) * NJOB
-      if tp.cut:
-        wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
-        if opt_warn_hfield:
-          wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
-                    "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
       if max_contacts > 1:
         cands.keep = tp.band  # the penetrating ones (depths include the band)
       write_candidates(
@@ -634,3 +631,16 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
     ],
     outputs=[d.overflow, b.count] + contact_outputs(d),
   )
+  if c.hfield_closed_form:
+    wp.launch(
+      hfield_closed_form,
+      dim=nthread_pair,
+      inputs=[
+        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+        m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
+        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
+        m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, opt.max_contacts_per_pair,
+        opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.count, b.pair, nthread_pair, quota,
+      ],
+      outputs=contact_outputs(d),
+    )

@@ -256,8 +256,31 @@ def deep_points(scene: _Scene, ref: Reference, contacts: list[Contact]) -> list[
     nearest = _nearest(positions.get(pair), c.pos)
     rows.append({"pair": scene.label(pair), "geoms": pair, "kind": scene.kind(pair), "dist": c.dist,
                  "pos": c.pos.tolist(), "nearest": None if math.isinf(nearest) else nearest,
-                 "missed": not nearest <= scene.radius})
+                 "missed": not nearest <= scene.radius, "inner_wall": _inner_wall(scene, ref, c)})
   return rows
+
+
+# a heightfield contact normal this close to horizontal (in the terrain's frame) is a prism's side wall
+WALL_NZ = 1e-3
+
+
+def _inner_wall(scene: _Scene, ref: Reference, c: Contact) -> bool:
+  """Whether MuJoCo C's heightfield contact ``c`` is a side wall's of a prism inside the grid: its
+  normal horizontal in the terrain's frame, its point a cell or more from the outer edge. The
+  terrain's surface has no such normal anywhere (a heightfield is a graph over its grid): those
+  walls lie inside the solid, between two prisms, and only the outer ones bound it."""
+  hf = [g for g in c.geom if g in scene.hfield]
+  if not hf:
+    return False
+  g = hf[0]
+  rot = ref.xmat[g]
+  if abs(float(np.dot(rot[:, 2], c.normal))) >= WALL_NZ:
+    return False
+  data = int(scene.mjm.geom_dataid[g])
+  size = scene.mjm.hfield_size[data]
+  cell = 2.0 * size[:2] / (np.array([scene.mjm.hfield_ncol[data], scene.mjm.hfield_nrow[data]]) - 1)
+  local = rot.T @ (np.asarray(c.pos) - ref.xpos[g])
+  return bool(np.all(np.abs(local[:2]) <= size[:2] - cell))
 
 
 def adjudicate_normals(scene: _Scene, ref: Reference, contacts: list[Contact]) -> list[dict]:
@@ -332,6 +355,8 @@ def _fidelity_summary(per_state: list[dict]) -> dict:
     "deep_points_missed_fraction": nmissed / nref if nref else 0.0,
     "deep_points_reference_hfield": count(deep, ("hfield",)),
     "deep_points_missed_hfield": count(deep, ("hfield",), True),
+    # MuJoCo C's points whose normal is an inner prism wall's: no normal of the terrain's surface
+    "deep_points_missed_hfield_inner_wall": sum(1 for r in deep if r["missed"] and r.get("inner_wall")),
     "deep_points_reference_nonconvex": count(deep, ("nonconvex",)),
     "deep_points_missed_nonconvex": count(deep, ("nonconvex",), True),
     "normals_differ": len(judged),
@@ -411,7 +436,8 @@ def compare_states(mjm: mujoco.MjModel, states: list[np.ndarray], impls: dict, m
   missed, missed_deep, depth/normal/position errors, ...) and the fidelity figures:
   deep_points_reference / _missed / _missed_fraction (MuJoCo C's points >= min_depth deep
   without a contact of their pair within radius; heightfield pairs included, also counted
-  apart as ..._hfield; pairs with a non-convex mesh only in ..._nonconvex), normals_differ /
+  apart as ..._hfield, and of those missed the ones whose MuJoCo C normal is an inner prism
+  wall's as ..._hfield_inner_wall; pairs with a non-convex mesh only in ..._nonconvex), normals_differ /
   _better / _tie / _worse (verdicts by exact overlap where the deepest normals differ by more
   than NORMAL_DIFFER_DEG), pairs_normal_over_5deg, pairs_normal_worse (over 5 deg and worse),
   normals_skipped_hfield / _nonconvex, contacts_checked, contacts_outside, max_outside [m],
@@ -520,6 +546,7 @@ _ROWS = [
   ("deep_points_missed_reference_worse", "    on pairs where MuJoCo C's normal is > 5 deg off and worse", "d"),
   ("deep_points_reference_hfield", "  of which on heightfields", "d"),
   ("deep_points_missed_hfield", "    missed", "d"),
+  ("deep_points_missed_hfield_inner_wall", "      of which MuJoCo C's normal an inner prism wall's", "d"),
   ("deep_points_reference_nonconvex", "deep points, non-convex meshes", "d"),
   ("deep_points_missed_nonconvex", "  missed (not counted)", "d"),
   ("normals_differ", "normals > 1 deg off, adjudicated", "d"),
@@ -534,7 +561,8 @@ _ROWS = [
   ("contacts_outside", "  off their shapes", "d"),
   ("max_outside", "  max distance outside a geom [m]", ".2e"),
 ]
-_OPTIONAL_ROWS = {"deep_points_reference_hfield", "deep_points_missed_hfield", "deep_points_reference_nonconvex",
+_OPTIONAL_ROWS = {"deep_points_reference_hfield", "deep_points_missed_hfield", "deep_points_missed_hfield_inner_wall",
+                  "deep_points_reference_nonconvex",
                   "deep_points_missed_nonconvex", "normals_skipped_hfield", "normals_skipped_nonconvex"}
 LEGEND = ("deep point: a MuJoCo C contact >= min depth deep, missed when no contact of its pair lies within the radius; "
           "normal verdicts: exact overlap of the convex shapes along each normal on MuJoCo C's poses, the smaller is "

@@ -39,10 +39,11 @@ from mjx_supportfield.types import Shape
 
 MAX_MANIFOLD = 5  # contacts of a clipped pair (Options.max_contacts_per_pair's bound)
 # reference corners x incident corners above which a face pair goes to the tilts: the clipping
-# loops over every pair of them. Robot links' hulls have faces of tens of corners (a 40-gon on a
-# triangle, a pot's 24-gon on a box face), whose tilts land on the deepest edge alone; two
-# 24-gons are within it, an aluminium extrusion's 76-gon end on a 76-gon is not
-FACE_PAIR_BUDGET = 640
+# loops over every pair of them, one thread a pair, and the kernel waits for its longest thread.
+# Robot links' hulls have faces of tens of corners (a 40-gon on a triangle, a pot's 24-gon on a
+# box face), whose tilts land on the deepest edge alone: those are within it; two 24-gons, or an
+# aluminium extrusion's 76-gon end on a 76-gon, are not
+FACE_PAIR_BUDGET = 200
 DISK_CORNERS = 16  # MuJoCo's polygon for a cylinder's end
 QUAD_ROUNDS = 2  # alternations between a quadrilateral's diagonals in _largest_quad
 

@@ -187,6 +187,7 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
         continue
       tp.cid = cid
+      tp.closed_form = wp.where(closed_form(b, tp, hfield.size), 1, 0)
       ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
       # two sweeps over the cells (nsweep = 2, an argument so that the loop is not unrolled): the
       # first counts the jobs, keeping the first KEPT_CELLS cells' masks, the second queues the
@@ -195,8 +196,8 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       kept_mask = vec_kept()
       nkept = int(0)
       n = int(0)  # jobs counted (first sweep), then queued
-      # a sphere or a capsule within the grid has no MPR jobs: hfield_contacts answers it in closed form
-      for sweep in range(wp.where(closed_form(b, tp, hfield.size), 0, nsweep)):
+      # a sphere or a capsule within the grid has no MPR jobs: hfield_closed_form answers it
+      for sweep in range(wp.where(tp.closed_form == 1, 0, nsweep)):
         cell = int(0)
         if sweep == 1:
           if nkept < KEPT_CELLS or n >= tp.job_count:
@@ -448,6 +449,13 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       cid = tp.cid
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
+      if tp.cut:
+        wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
+        if opt_warn_hfield:
+          wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
+                    "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
+      if tp.closed_form == 1:
+        continue  # hfield_closed_form's
       _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
         geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
         geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
@@ -455,13 +463,6 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       )
       terrain, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
       hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
-      if tp.cut:
-        wp.atomic_or(overflow_out, worldid, int(OverflowType.HFIELD))
-        if opt_warn_hfield:
-          wp.printf("mjx_supportfield: heightfield overflow - geom %d covers more than %d cells in world %d; only the "
-                    "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
-      if closed_form(b, tp, hfield.size):
-        continue  # hfield_closed_form's
       spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
       cands = _plane_pass(hfield, b, ms, tp, spacing)
       for j in range(tp.job_start, tp.job_start + tp.job_count):

@@ -17,10 +17,10 @@ that part reaches the triangle's plane its end nearest the plane (the middle whe
 parallel to it), else its point nearest the triangle; where no part lies over it, the axis point
 nearest the triangle (a ridge beside the capsule, a steep triangle beside an end).
 
-One kernel, ``hfield_closed_form``, one thread a pair of hfield_jobs' list, in a module of its
-own: the stage's other kernels (MPR, GJK/EPA) take minutes to build, and this one is small. A
-pair reaching past the heightfield's outer edge keeps the MPR path, whose prisms see the outer
-side walls. heightfield.py launches it; the pair list and the window are hfield_window.py's.
+One kernel, ``hfield_closed_form``, one thread a pair of hfield_jobs' list (which marks the pairs
+by ``closed_form``), in a module of its own: the stage's other kernels (MPR, GJK/EPA) take
+minutes to build, and this one is small. A pair reaching past the heightfield's outer edge keeps
+the MPR path, whose prisms see the outer side walls. heightfield.py launches it; the pair list and the window are hfield_window.py's.
 """
 
 import warp as wp
@@ -244,24 +244,25 @@ def closed_form_pass(hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: fl
   cands = empty_with_room(NCANDIDATE)
   dx, dy = _cell_size(hfield)
   ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
-  for item in range(2 * ncell * nball):  # one loop over cells, their two triangles and the balls
-    cell = item // (2 * nball)
-    t = (item // nball) % 2
-    k = item % nball
+  for cell in range(ncell):
     r, c = _window_cell(tp, cell)
     p00, p01, p10, p11, na, nb = _cell(hfield, dx, dy, r, c)
     if _above_cell(tp, p00, p01, p10, p11):
       continue
-    v1 = wp.where(t == 0, p10, p11)
-    v2 = wp.where(t == 0, p11, p01)
-    n = wp.where(t == 0, na, nb)
-    npair, x0, s0, s1 = _ball_for(b, k, p00, v1, v2, n)
-    if npair == 0:
-      continue
-    x, q, at = _nearest_pair(x0, s0, s1, npair, p00, v1, v2)
-    depth, pos, normal = _answer(hfield, dx, dy, r, c, t, p00, n, x, q, at, b.size[0], tp.band)
-    if depth > 0.0:
-      cands = add_candidate(cands, pos, normal, depth, spacing)
+    # one loop over the two triangles and their balls (a bound known at run time: not unrolled,
+    # so that the answer is built once in the kernel's code)
+    for item in range(2 * nball):
+      t = item // nball
+      v1 = wp.where(t == 0, p10, p11)
+      v2 = wp.where(t == 0, p11, p01)
+      n = wp.where(t == 0, na, nb)
+      npair, x0, s0, s1 = _ball_for(b, item % nball, p00, v1, v2, n)
+      if npair == 0:
+        continue
+      x, q, at = _nearest_pair(x0, s0, s1, npair, p00, v1, v2)
+      depth, pos, normal = _answer(hfield, dx, dy, r, c, t, p00, n, x, q, at, b.size[0], tp.band)
+      if depth > 0.0:
+        cands = add_candidate(cands, pos, normal, depth, spacing)
   return cands
 
 
@@ -327,18 +328,18 @@ def hfield_closed_form(
   contact_adhesion_out: wp.array(dtype=float),
   nacon_out: wp.array(dtype=int),
 ):
-  """The pairs of hfield_jobs' list that take the closed-form pass (closed_form), one thread a
-  pair: their candidates merged (candidates.py) and written (heightfield first, as MuJoCo orders
-  the pair); the stage's other kernels leave them alone."""
+  """The pairs of hfield_jobs' list that take the closed-form pass (marked there by closed_form),
+  one thread a pair: their candidates merged (candidates.py) and written (heightfield first, as
+  MuJoCo orders the pair); the stage's other kernels leave them alone."""
   tid = wp.tid()
   for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
     tp = hfield_pair_in[slot]
+    if tp.closed_form == 0:
+      continue  # hfield_contacts'
     cid = tp.cid
     geoms = pair_in[cid]
     worldid = pair_worldid_in[cid]
     terrain, b, hf = _terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
-    if not closed_form(b, tp, hfield_size[hf]):
-      continue
     hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
     spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
     cands = closed_form_pass(hfield, b, tp, spacing, wp.where(b.gtype == GeomType.CAPSULE, NBALL, 1))

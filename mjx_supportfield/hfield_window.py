@@ -118,6 +118,7 @@ class TerrainPair:
   job_start: int  # the first job_count of them, in order, are jobs job_start ... of the MPR queue
   job_count: int
   nprism: int  # how many of those are prisms (hfield_order groups them apart from the points)
+  closed_form: int  # 1: a sphere or a capsule within the grid, hfield_closed_form's (no MPR job)
 
 
 @wp.func
@@ -326,6 +327,7 @@ def window_funcs(mode: int) -> SimpleNamespace:
     tp.job_start = 0
     tp.job_count = 0
     tp.nprism = 0
+    tp.closed_form = 0
     for k in range(3):
       tp.hi[k] = support_world(b, ms, _axis(k))[k] + band
       tp.lo[k] = support_world(b, ms, -_axis(k))[k] - band

@@ -83,6 +83,7 @@ def main():
   p.add_argument("model")
   p.add_argument("--nworld", type=int, default=8192)
   p.add_argument("--settle", type=int, default=200)
+  p.add_argument("--keyframe", type=int, default=None, help="settle from this keyframe instead of qpos0")
   p.add_argument("--repeats", type=int, default=5)
   p.add_argument("--variants", default="default", help="plugin variants (see above), comma-separated")
   p.add_argument("--steps", type=int, default=0, help="profile N evolving steps instead of one frozen state")
@@ -91,7 +92,7 @@ def main():
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
   mjm = mujoco.MjModel.from_xml_path(args.model)
-  mjd = settled_state(mjm, args.settle)
+  mjd = settled_state(mjm, args.settle, args.keyframe)
   ncon = int(1.5 * mjd.ncon) + 16
   for impl in ([] if args.no_stock else ["stock"]) + args.variants.split(","):
     fields = dict(kv.split("=", 1) for kv in impl.split(";") if kv not in ("default", "stock"))

@@ -4,8 +4,8 @@
                             [--steps 100000] [--chunk 500] [--minutes M] [--json OUT]
                             [--save CK.npz [--save-every N]] [--resume CK.npz]
 
-The worlds start from the scene's initial state (every body dropped from rest), each with a
-small random velocity so they differ. Steps run ``chunk`` at a time from one captured graph
+The worlds start from the scene's initial state (its keyframe, if it has one; a pile's bodies
+dropped from rest), each with a small random velocity so they differ. Steps run ``chunk`` at a time from one captured graph
 (a CUDA graph on a GPU; a last, shorter chunk runs uncaptured). After every chunk the run checks,
 over all worlds:
   - qpos and qvel finite (a NaN anywhere is a failure);
@@ -13,7 +13,17 @@ over all worlds:
     own 500-step run from rest plus the random velocities' kinetic energy (never below the largest
     initial energy), plus 1 % of the energy span of C's run. A dropped pile only loses energy, so
     its bound is its initial energy; an actuated robot's actuators add some, as they do in C;
-  - no overflow bit in d.overflow, no dropped broad-phase pairs.
+  - no overflow bit in d.overflow, no dropped broad-phase pairs;
+  - no moving body's centre of mass inside a static box, under a static plane or under a
+    heightfield's surface (nothing through the ground).
+
+Terrain robots (``--ctrl-noise``, ``--reset-every``), as an RL run drives them: every chunk each
+world's controls are the keyframe's plus uniform noise of that amplitude, and after every chunk
+the worlds whose episode ends (world w after chunks k with (k + w) % N == N - 1: a staggered
+fraction 1/N of the worlds each time) are reset as mjlab resets them: ``mjw.reset_data`` with that
+mask, then the keyframe's state shifted horizontally by up to 5 cm, small random velocities and
+``mjw.forward``. Random controls feed the robots energy, so the energy bound is reported but not
+judged while they are on.
 The run stops at ``steps`` (in all, counted over every segment) or before a chunk that would end
 more than ``minutes`` after the script started (setup and compiling included; judged by the
 slowest chunk so far, the first chunk always runs), and the JSON says which.
@@ -54,6 +64,8 @@ sys.path.insert(0, HERE)
 
 import make_scenes  # noqa: E402
 
+from mjx_supportfield import real_scenes  # noqa: E402
+
 from mjx_supportfield import bench  # noqa: E402
 from mjx_supportfield.checkpoint import FORMAT  # noqa: E402
 from mjx_supportfield.checkpoint import WARMSTART  # noqa: E402
@@ -69,6 +81,7 @@ from mjx_supportfield.install import get_collider  # noqa: E402
 from mjx_supportfield.install import install  # noqa: E402
 
 SPEED = 0.05  # m/s (and rad/s) of the random initial velocities
+RESET_SHIFT = 0.05  # m: how far a reset world's robots are moved horizontally from the keyframe
 
 
 def energy(d) -> np.ndarray:
@@ -92,8 +105,7 @@ def reference_rollout(mjm, nstep: int = 500) -> tuple:
   """MuJoCo C's run of the scene from its initial state at rest: the state it ends in, and the
   highest and lowest total energy on the way. A pile only loses energy; an actuated robot's
   actuators can add some, so the bound follows what MuJoCo C itself reaches."""
-  mjd = mujoco.MjData(mjm)
-  mujoco.mj_forward(mjm, mjd)
+  mjd = real_scenes.initial_data(mjm)
   start = float(mjd.energy.sum())
   high = low = start
   for _ in range(nstep):
@@ -105,8 +117,7 @@ def reference_rollout(mjm, nstep: int = 500) -> tuple:
 def fresh_start(mjm, m, nworld: int, nconmax_arg):
   """Data for a new soak: scene's initial state, random velocities; and the energy references."""
   settled, e_start, e_high, e_low = reference_rollout(mjm)
-  mjd = mujoco.MjData(mjm)
-  mujoco.mj_forward(mjm, mjd)
+  mjd = real_scenes.initial_data(mjm)
   # room for the contacts at rest and for those of the first step (a robot scene may start in contact)
   nconmax = nconmax_arg or 2 * max(settled.ncon, mjd.ncon) + 16
   d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=nconmax, njmax=6 * nconmax)
@@ -122,24 +133,90 @@ def fresh_start(mjm, m, nworld: int, nconmax_arg):
   return d, ref
 
 
-def check_chunk(d, collider, nworld: int, limit: float) -> tuple:
-  """(trace row, list of failed checks) for the state of ``d`` after a chunk."""
+def check_chunk(d, collider, nworld: int, limit, ground: "Ground") -> tuple:
+  """(trace row, list of failed checks) for the state of ``d`` after a chunk (``limit``: the
+  energy bound, or None where it is not judged)."""
   qpos, qvel = d.qpos.numpy(), d.qvel.numpy()
   finite = bool(np.isfinite(qpos).all() and np.isfinite(qvel).all())
   e = energy(d)
   overflow = int(np.bitwise_or.reduce(d.overflow.numpy().ravel()))
   stats = collider.stats(d)
+  through = ground.bodies_through(d)
   row = {"finite": finite, "energy_max": float(np.nanmax(e)), "energy_mean": float(np.nanmean(e)),
          "overflow_bits": overflow, "dropped_pairs": int(sum(stats["dropped_pairs_per_world"])),
-         "contacts_per_world": min(int(d.nacon.numpy()[0]), d.naconmax) / nworld}
+         "contacts_per_world": min(int(d.nacon.numpy()[0]), d.naconmax) / nworld,
+         "bodies_through_ground": len(through)}
   bad = []
   if not finite:
     bad.append("non-finite state")
-  if row["energy_max"] > limit:
+  if limit is not None and row["energy_max"] > limit:
     bad.append(f"energy {row['energy_max']:.4g} > bound {limit:.4g}")
   if overflow or row["dropped_pairs"]:
     bad.append(f"overflow bits {overflow}, dropped pairs {row['dropped_pairs']}")
+  if through:
+    bad.append(f"{len(through)} bodies through the ground, first (world, body) {through[:3]}")
   return row, bad
+
+
+class Ground:
+  """The static geoms (boxes, planes, heightfields) and the bodies that move over them: a moving
+  body's centre of mass inside one of them has gone through the ground."""
+
+  def __init__(self, mjm):
+    self.mjm = mjm
+    self.static = real_scenes.static_geoms(mjm)
+    self.moving = [b for b in range(1, mjm.nbody) if mjm.body_weldid[b] != 0 and mjm.body_mass[b] > 0]
+    mjd = mujoco.MjData(mjm)
+    mujoco.mj_kinematics(mjm, mjd)  # static geoms sit where they are in every world
+    self.geom_xpos, self.geom_xmat = mjd.geom_xpos.copy(), mjd.geom_xmat.copy()
+
+  def bodies_through(self, d) -> list:
+    """(world, body name) of every moving body inside the ground."""
+    if not self.static or not self.moving:
+      return []
+    xipos = d.xipos.numpy()[:, self.moving]
+    inside = real_scenes.inside_static(self.mjm, xipos, self.geom_xpos, self.geom_xmat, self.static)
+    return [(int(w), self.mjm.body(self.moving[i]).name) for w, i in zip(*np.nonzero(inside))]
+
+
+class Episodes:
+  """RL-style driving of the worlds (--ctrl-noise, --reset-every): random controls about the
+  keyframe's each chunk, and staggered masked resets to the keyframe."""
+
+  def __init__(self, mjm, m, nworld: int, noise: float, every: int):
+    self.mjm, self.m, self.nworld, self.noise, self.every = mjm, m, nworld, noise, every
+    self.rng = np.random.default_rng(1)
+    start = real_scenes.initial_data(mjm)
+    self.qpos0, self.ctrl0 = start.qpos.copy(), start.ctrl.copy()
+    self.resets = 0
+
+  def drive(self, d):
+    """New controls for the next chunk."""
+    if self.noise and self.mjm.nu:
+      ctrl = self.ctrl0 + self.noise * self.rng.uniform(-1, 1, size=(self.nworld, self.mjm.nu))
+      d.ctrl.assign(ctrl.astype(np.float32))
+
+  def reset(self, d, chunk: int):
+    """Resets the worlds whose episode ends after ``chunk``."""
+    if not self.every:
+      return
+    mask = (chunk + np.arange(self.nworld)) % self.every == self.every - 1
+    if not mask.any():
+      return
+    mjw.reset_data(self.m, d, reset=wp.array(mask, dtype=bool))
+    qpos, qvel, ctrl = d.qpos.numpy(), d.qvel.numpy(), d.ctrl.numpy()
+    for w in np.nonzero(mask)[0]:
+      q = self.qpos0.copy()
+      for b in real_scenes.free_bodies(self.mjm):
+        adr = self.mjm.jnt_qposadr[self.mjm.body_jntadr[b]]
+        q[adr:adr + 2] += self.rng.uniform(-RESET_SHIFT, RESET_SHIFT, size=2)
+      qpos[w], ctrl[w] = q, self.ctrl0
+      qvel[w] = SPEED * self.rng.uniform(-1, 1, size=self.mjm.nv)
+    d.qpos.assign(qpos)
+    d.qvel.assign(qvel)
+    d.ctrl.assign(ctrl)
+    mjw.forward(self.m, d)
+    self.resets += int(mask.sum())
 
 
 def record(hist: dict, row: dict, bad: list):
@@ -195,6 +272,10 @@ def parse_args():
   p.add_argument("--save-max-mib", type=float, default=15.0,
                  help="leave qacc_warmstart out if the state arrays would pass this size (uncompressed)")
   p.add_argument("--resume", default=None, help="continue the soak saved in this checkpoint")
+  p.add_argument("--ctrl-noise", type=float, default=0.0,
+                 help="each chunk, controls = the keyframe's + uniform noise of this amplitude (energy then not judged)")
+  p.add_argument("--reset-every", type=int, default=0,
+                 help="reset each world (masked reset_data, to the keyframe) every N chunks, staggered (0: never)")
   return p.parse_args()
 
 
@@ -240,8 +321,10 @@ def main():
     d = resume_start(mjm, m, meta, state)
     print(f"resumed {args.resume}: step {hist['steps']}, {hist['segments']} segment(s) before, "
           f"warm start {'restored' if WARMSTART in state else 'not saved'}", flush=True)
-  limit = ref["energy_bound"]
+  limit = None if args.ctrl_noise else ref["energy_bound"]
   collider = get_collider(m)
+  ground = Ground(mjm)
+  episodes = Episodes(mjm, m, nworld, args.ctrl_noise, args.reset_every)
   hist["segments"] += hist["steps"] < args.steps  # a resume with nothing left to run adds no segment
   segment, steps0, seconds0 = hist["segments"], hist["steps"], hist["seconds"]
 
@@ -266,14 +349,16 @@ def main():
       reason = "time limit"
       break
     n = min(args.chunk, args.steps - hist["steps"])
+    episodes.drive(d)
     run(n)
     hist["steps"] += n
-    row, bad = check_chunk(d, collider, nworld, limit)
+    row, bad = check_chunk(d, collider, nworld, limit, ground)
     now = time.perf_counter() - t0
     slowest = max(slowest, now - elapsed)
     hist["seconds"] = seconds0 + now
     row = {"step": hist["steps"], "segment": segment, "seconds": hist["seconds"], **row}
     record(hist, row, bad)
+    episodes.reset(d, hist["chunks"])
     print(f"step {row['step']:7d}  {row['seconds']:7.1f} s  energy max {row['energy_max']:.5g}"
           f" mean {row['energy_mean']:.5g}  contacts/world {row['contacts_per_world']:.1f}  {'; '.join(bad) or 'ok'}",
           flush=True)
@@ -296,7 +381,11 @@ def main():
             "contacts_per_world_second_half": {"min": min(late), "mean": float(np.mean(late)), "max": max(late)}
             if late else None,
             "steps_run": steps, "steps_asked": args.steps, "stopped_by": reason, "chunk": args.chunk,
-            "energy_initial_max": ref["energy_initial_max"], "energy_bound": limit, "failures": failures,
+            "energy_initial_max": ref["energy_initial_max"], "energy_bound": ref["energy_bound"],
+            "energy_judged": limit is not None, "ctrl_noise": args.ctrl_noise, "reset_every": args.reset_every,
+            "worlds_reset_this_segment": episodes.resets,
+            "bodies_through_ground_max": max((r.get("bodies_through_ground", 0) for r in hist["trace"]), default=0),
+            "failures": failures,
             "passed": not failures, "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__},
             "complete": complete, "segments": segment, "steps_this_segment": steps - steps0,
             "seconds_this_segment": hist["seconds"] - seconds0, "seconds_total": hist["seconds"],

@@ -56,9 +56,15 @@ class Progress:
     sys.stderr.flush()
 
 
-def settled_state(mjm: mujoco.MjModel, settle_steps: int) -> mujoco.MjData:
-  """MuJoCo C state after ``settle_steps`` steps from qpos0 (as ``compare`` samples states)."""
+def settled_state(mjm: mujoco.MjModel, settle_steps: int, keyframe: Optional[int] = None) -> mujoco.MjData:
+  """MuJoCo C state after ``settle_steps`` steps from qpos0 (as ``compare`` samples states), or
+  from keyframe ``keyframe`` (a scene whose qpos0 is no physical state: robots placed in the
+  ground, to stand where their keyframe puts them)."""
   mjd = mujoco.MjData(mjm)
+  if keyframe is not None:
+    if not 0 <= keyframe < mjm.nkey:
+      raise ValueError(f"keyframe {keyframe}: the model has {mjm.nkey} keyframe(s)")
+    mujoco.mj_resetDataKeyframe(mjm, mjd, keyframe)
   for _ in range(settle_steps):
     mujoco.mj_step(mjm, mjd)
   mujoco.mj_forward(mjm, mjd)
@@ -156,8 +162,10 @@ def scene_name(path: str) -> str:
 
 
 def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int, nconmax: Optional[int],
-                options: Optional[Options], progress: Optional[Progress] = None) -> list[Row]:
-  """Times both implementations on one scene for each nworld.
+                options: Optional[Options], progress: Optional[Progress] = None,
+                keyframe: Optional[int] = None) -> list[Row]:
+  """Times both implementations on one scene for each nworld, from its settled state
+  (settled_state: ``settle_steps`` of MuJoCo C from qpos0 or from keyframe ``keyframe``).
 
   Both get the same room (``nconmax``, ``njmax``). With ``nconmax`` None it starts from what
   MuJoCo C finds at the settled state and doubles (both timed again) while either implementation
@@ -165,7 +173,7 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
   constraints; a given ``nconmax`` stays, and an overflow is reported on stderr and in the rows.
   """
   mjm = mujoco.MjModel.from_xml_path(path)
-  mjd = settled_state(mjm, settle_steps)
+  mjd = settled_state(mjm, settle_steps, keyframe)
   scene = scene_name(path)
   # room for what MuJoCo C finds at the settled state, with headroom for both implementations
   ncon = nconmax or int(1.5 * mjd.ncon) + 16

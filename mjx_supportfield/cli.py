@@ -119,9 +119,11 @@ def _bench(args) -> int:
     rows, newton_results = [], []
     progress = bench.Progress(len(args.model) * len(nworlds) * 2)
     for path in args.model:
-      rows += bench.bench_scene(path, nworlds, args.steps, args.settle, args.nconmax, Options(), progress)
+      rows += bench.bench_scene(path, nworlds, args.steps, args.settle, args.nconmax, Options(), progress,
+                                args.keyframe)
       if newton_bench:
-        newton_results += newton_bench.bench_newton(path, nworlds, args.steps, args.settle, args.nconmax)
+        newton_results += newton_bench.bench_newton(path, nworlds, args.steps, args.settle, args.nconmax,
+                                                    keyframe=args.keyframe)
       if args.json:  # after each scene, so a run cut short keeps what it measured
         bench.write_json(rows, args.json, extra=newton_bench.json_extra(newton_results) if newton_bench else None)
     print(bench.format_table(rows))
@@ -218,6 +220,8 @@ def _parser() -> argparse.ArgumentParser:
                       "step costs about nworld times one world's)")
   b.add_argument("--steps", type=int, default=100, help="timed launches per measurement (default and minimum 100)")
   b.add_argument("--settle", type=int, default=200, help="MuJoCo C steps before timing, to start in contact")
+  b.add_argument("--keyframe", type=int, default=None,
+                 help="settle from this keyframe of each model instead of qpos0 (robots that stand where a keyframe puts them)")
   b.add_argument("--nconmax", type=int, default=None, help="contacts per world to allocate for both implementations (default: from MuJoCo C's settled contacts, doubled while either overflows)")
   b.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
   b.add_argument("--json", default=None, help="write rows as JSON")
@@ -234,8 +238,9 @@ def _parser() -> argparse.ArgumentParser:
   return p
 
 
-def _check_model(path: str):
-  """None if ``path`` is an MJCF file MuJoCo compiles, else the error line."""
+def _check_model(path: str, keyframe=None):
+  """None if ``path`` is an MJCF file MuJoCo compiles (with keyframe ``keyframe``, if given),
+  else the error line."""
   if os.path.isdir(path):
     xml = sorted(f for f in os.listdir(path) if f.endswith(".xml"))
     hint = f" (it holds {', '.join(xml[:3])}{', ...' if len(xml) > 3 else ''})" if xml else ""
@@ -245,9 +250,11 @@ def _check_model(path: str):
   import mujoco
 
   try:  # before Warp starts and compiles kernels
-    mujoco.MjModel.from_xml_path(path)
+    mjm = mujoco.MjModel.from_xml_path(path)
   except ValueError as e:
     return f"{path}: {e}"
+  if keyframe is not None and keyframe >= mjm.nkey:
+    return f"--keyframe {keyframe}: {path} has {mjm.nkey} keyframe(s)"
   return None
 
 
@@ -268,6 +275,8 @@ def _check_args(args):
       return f"--settle must be >= 0, got {args.settle}"
     if args.nconmax is not None and args.nconmax < 1:
       return f"--nconmax must be >= 1, got {args.nconmax}"
+    if args.keyframe is not None and args.keyframe < 0:
+      return f"--keyframe must be >= 0, got {args.keyframe}"
   return None
 
 
@@ -289,7 +298,7 @@ def main(argv=None) -> int:
   args = _parser().parse_args(argv)
   models = args.model if isinstance(getattr(args, "model", None), list) else [getattr(args, "model", None)]
   for path in models:
-    if path is not None and (problem := _check_model(path)):
+    if path is not None and (problem := _check_model(path, getattr(args, "keyframe", None))):
       return _error(problem)
   problem = _check_args(args) or _check_device(getattr(args, "device", None))
   if problem:

@@ -29,6 +29,7 @@ import sys
 import threading
 import time
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 from warp._src import context as wp_context
@@ -62,6 +63,20 @@ class _Fallback(logging.Handler):
 
 if not any(isinstance(h, _Fallback) for h in logger.handlers):
   logger.addHandler(_Fallback())
+
+
+def _build_workers() -> int:
+  """Threads that compile a first collision's modules side by side: ``MJX_SUPPORTFIELD_BUILD_THREADS``
+  where set (1: one after another), else one a core up to 8 (each NVRTC build holds about a GiB
+  of memory). Warp's own ``load_module_max_workers`` is left to ``wp.load_module``: its default
+  there is one after another."""
+  value = os.environ.get("MJX_SUPPORTFIELD_BUILD_THREADS", "")
+  if value.strip():
+    try:
+      return max(1, int(value))
+    except ValueError:
+      logger.warning("MJX_SUPPORTFIELD_BUILD_THREADS=%r is not an integer; building with one thread a core", value)
+  return max(1, min(os.cpu_count() or 1, 8))
 
 
 def _rough(seconds: float) -> str:
@@ -104,22 +119,30 @@ def _will_compile(module, device, block_dim) -> bool:
 class _Stage:
   """Compiles within one stage (install, the plugin's first collision, ...), noted as they come."""
 
-  def __init__(self, label: str, planned: int = 0):
-    self.label, self.planned = label, planned
+  def __init__(self, label: str, planned: int = 0, workers: int = 1):
+    self.label, self.planned, self.workers = label, planned, workers
     self.count, self.t0, self.device, self.last_line = 0, None, None, 0.0
     self.seen = set()  # names noted: a factory's kernel built twice is another variant
 
-  def note(self, module, device):
-    if self.count == 0:
-      self.t0, self.device = time.perf_counter(), wp.get_device(device)
-      kind = "cuda" if self.device.is_cuda else "cpu"
-      if self.planned:
-        what = f"{self.planned} kernel module{'s' if self.planned > 1 else ''} for {self.label}"
-        rough = f" ({_rough(self.planned * _ROUGH_SECONDS_PER_MODULE[kind])})"
-      else:
-        what, rough = f"kernels for {self.label}", ""
-      logger.info("first use on %s: Warp compiles %s%s; they are not in its kernel cache yet (%s)", self.device.alias,
-                  what, rough, wp.config.kernel_cache_dir)
+  def begin(self, device):
+    """The stage's first note: what compiles, and roughly how long it takes."""
+    if self.t0 is not None:
+      return
+    self.t0, self.device = time.perf_counter(), wp.get_device(device)
+    kind = "cuda" if self.device.is_cuda else "cpu"
+    if self.planned:
+      what = f"{self.planned} kernel module{'s' if self.planned > 1 else ''} for {self.label}"
+      rounds = -(-self.planned // self.workers)  # modules one after another in the busiest thread
+      side = f", {self.workers} at a time" if self.workers > 1 else ""
+      rough = f" ({_rough(rounds * _ROUGH_SECONDS_PER_MODULE[kind])}{side})"
+    else:
+      what, rough = f"kernels for {self.label}", ""
+    logger.info("first use on %s: Warp compiles %s%s; they are not in its kernel cache yet (%s)", self.device.alias,
+                what, rough, wp.config.kernel_cache_dir)
+
+  def note(self, module, device, done: bool = False):
+    """A module's line: as it starts compiling, or (``done``) once it is built."""
+    self.begin(device)
     self.count += 1
     total = f"/{self.planned}" if self.planned >= self.count else ""
     name = _describe(module)
@@ -128,7 +151,7 @@ class _Stage:
     elapsed = time.perf_counter() - self.t0
     if self.planned or self.count == 1 or elapsed - self.last_line >= _QUIET_SECONDS:
       self.last_line = elapsed
-      logger.info("  [%d%s] %s%s%s", self.count, total, name, variant,
+      logger.info("  [%d%s] %s%s%s%s", self.count, total, name, variant, " built" if done else "",
                   f" ({elapsed:.0f} s so far)" if elapsed >= 1 else "")
 
   def close(self):
@@ -154,7 +177,7 @@ class _Watch:
     plan = getattr(self.planning, "plan", None)
     if plan is not None:  # this thread plans a first collision
       if not args and not kwargs and _will_compile(module, device, block_dim):
-        plan[id(module)] = module
+        plan[(id(module), block_dim)] = (module, device, block_dim)
       return None  # wp.launch returns without launching
     if not args and not kwargs and _will_compile(module, device, block_dim):
       with self.lock:
@@ -195,28 +218,53 @@ class _Watch:
   def first_collision(self, collider, m, d, awake_prev):
     self.end_stage()  # MuJoCo Warp's kinematics before it
     planned = self.plan_run(collider, m, d, awake_prev)
+    workers = min(len(planned), _build_workers()) if len(planned) > 1 else 1
     with self.lock:
-      self.stage = _Stage("the plugin's first collision", planned)
+      self.stage = _Stage("the plugin's first collision", len(planned), workers)
     try:
+      self.build(planned)
       collider.collision(m, d, awake_prev)
     finally:
       self.end_stage()
 
-  def plan_run(self, collider, m, d, awake_prev) -> int:
-    """Modules the first collision would compile: a run whose launches are skipped. Not while a
-    graph is captured (the plan's host-side work would be recorded), nor with flexes or a
-    contact filter callback (host-side work that is not only launches)."""
+  def plan_run(self, collider, m, d, awake_prev) -> list:
+    """(module, device, block_dim) of each module the first collision would compile: a run whose
+    launches are skipped. Not while a graph is captured (the plan's host-side work would be
+    recorded), nor with flexes or a contact filter callback (host-side work that is not only
+    launches)."""
     if collider.device.is_capturing or m.nflex or getattr(m.callback, "contactfilter", None):
-      return 0
+      return []
     plan = self.planning.plan = {}
     try:
       collider.collision(m, d, awake_prev)
-      return len(plan)
+      return list(plan.values())
     except Exception:  # the real run raises it again, with nothing skipped
       logger.debug("planning the first collision failed", exc_info=True)
-      return 0
+      return []
     finally:
       self.planning.plan = None
+
+  def build(self, planned: list):
+    """Compiles the planned modules side by side (Warp's compilers run outside the GIL, as in
+    ``wp.force_load``), each noted when done: the first collision then waits for its longest
+    module, not for the sum. Errors are left to the collision's own loads, which raise them."""
+    if len(planned) < 2:
+      return  # the collision's launch compiles it, noted by the wrapper
+
+    def load(item):
+      module, device, block_dim = item
+      self.original(module, device, block_dim)
+      with self.lock:
+        if self.stage is not None:
+          self.stage.note(module, device, done=True)
+
+    with self.lock:
+      self.stage.begin(planned[0][1])
+    try:
+      with ThreadPoolExecutor(max_workers=self.stage.workers) as pool:
+        list(pool.map(load, planned))
+    except Exception:
+      logger.debug("building the planned modules side by side failed", exc_info=True)
 
 
 _watch = _Watch()

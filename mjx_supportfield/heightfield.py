@@ -40,6 +40,12 @@ plane pass and the MPR answers in job order. MPRs that find the queue full
 threads take rows of EPA memory left over by hfield_ccd; a prism that finds none left runs MPR,
 counted in the heightfield count buffer's COUNT_CCD_AS_MPR).
 
+The kernels are built in parts of the stage's module (types.mode_module), which Warp builds side
+by side at first use (first_use.py), so that the first collision waits for the largest part, not
+for the sum: the light kernels, hfield_mpr, hfield_ccd (only for models with boxes or meshes on a
+heightfield) and hfield_contacts, whose GJK/EPA for the prisms beyond the queue is left out of
+models without boxes and meshes on a heightfield (legged robots' feet and shins).
+
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
 points farthest from those already chosen are written, up to ``max_contacts``, and after them
 every other candidate that penetrates: each is a distinct terrain feature inside the geom (a
@@ -122,16 +128,14 @@ wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 @functools.lru_cache(maxsize=None)
 def stage_kernels(mode: int) -> SimpleNamespace:
-  """The stage's kernels for support mode ``mode``, all in that mode's module (types.mode_module):
-  ``jobs``, ``kind_start``, ``order``, ``mpr``, ``ccd`` and ``contacts``. Three of them ask no
-  support query, but sharing the module keeps the stage one module to compile, as before."""
+  """The stage's kernels for support mode ``mode`` but hfield_contacts (contacts_kernel), in parts
+  of that mode's module (types.mode_module) that compile side by side at first use: ``jobs``,
+  ``kind_start`` and ``order`` in one, ``mpr`` and ``ccd`` in one each."""
   module = mode_module(__name__, mode)
   window = window_funcs(mode)
   _window = window._window
   _cell_jobs = window._cell_jobs
   _job_mpr = window._job_mpr
-  _job_answer = window._job_answer
-  _plane_pass = window._plane_pass
 
   @wp.kernel(module=module)
   def hfield_jobs(
@@ -277,7 +281,7 @@ def stage_kernels(mode: int) -> SimpleNamespace:
           order_out[point] = j
           point += 1
 
-  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  @wp.kernel(module=mode_module(__name__, mode, "mpr"), cuda_max_registers=HEAVY_REGISTERS)
   def hfield_mpr(
     # Model:
     geom_type: wp.array(dtype=int),
@@ -322,7 +326,7 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       answer_out[j] = answer
       normal_out[j] = normal
 
-  @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
+  @wp.kernel(module=mode_module(__name__, mode, "ccd"), cuda_max_registers=HEAVY_REGISTERS)
   def hfield_ccd(
     # Model:
     geom_type: wp.array(dtype=int),
@@ -368,7 +372,22 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         answer_out[j] = answer
         normal_out[j] = normal
 
-  @wp.kernel(module=module)
+  return SimpleNamespace(jobs=hfield_jobs, kind_start=hfield_kind_start, order=hfield_order, mpr=hfield_mpr,
+                         ccd=hfield_ccd)
+
+
+@functools.lru_cache(maxsize=None)
+def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
+  """hfield_contacts for support mode ``mode``, in a module of its own; with ``ccd`` (a model with
+  boxes or meshes on a heightfield) it runs their prisms beyond the queue by GJK/EPA, without
+  it that code is left out: GJK/EPA doubles the module's build time at first use."""
+  window = window_funcs(mode)
+  _cell_jobs = window._cell_jobs
+  _job_mpr = window._job_mpr
+  _job_answer = window._job_answer
+  _plane_pass = window._plane_pass
+
+  @wp.kernel(module=mode_module(__name__, mode, "contacts_ccd" if ccd else "contacts"))
   def hfield_contacts(
     # Model:
     geom_type: wp.array(dtype=int),
@@ -474,10 +493,11 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         code = hfield_job_in[tp.job_start + tp.job_count - 1][1] + 1
       left = tp.job_total - tp.job_count
       bgeom = Geom()
-      if left > 0 and _uses_ccd(b, 0):
-        bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
-        if row < 0:
-          row = wp.atomic_add(hfield_count_out, COUNT_EPA_ROWS, 1)
+      if wp.static(ccd):
+        if left > 0 and _uses_ccd(b, 0):
+          bgeom = _ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+          if row < 0:
+            row = wp.atomic_add(hfield_count_out, COUNT_EPA_ROWS, 1)
       ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
       while left > 0 and code < ncell * NJOB:
         cell = code // NJOB
@@ -486,8 +506,12 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         job = int(0)
         while mask != 0:
           if (mask & 1) == 1:
-            answer, normal = _job_answer(hfield, b, ms, tp, cell * NJOB + job, mpr_options, bgeom, ccd_in, row,
-                                         worldid, overflow_out, hfield_count_out)
+            answer, normal = wp.vec4(), wp.vec3()
+            if wp.static(ccd):
+              answer, normal = _job_answer(hfield, b, ms, tp, cell * NJOB + job, mpr_options, bgeom, ccd_in, row,
+                                           worldid, overflow_out, hfield_count_out)
+            else:  # no box or mesh on a heightfield: MPR's, as _job_answer would give
+              answer, normal = _job_mpr(hfield, b, ms, tp, cell * NJOB + job, mpr_options)
             cands = _add_job_answer(hfield, tp, b, cands, cell * NJOB + job, answer, normal, spacing,
                                     mpr_options.tolerance)
             left -= 1
@@ -504,8 +528,7 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
       )
 
-  return SimpleNamespace(jobs=hfield_jobs, kind_start=hfield_kind_start, order=hfield_order, mpr=hfield_mpr,
-                         ccd=hfield_ccd, contacts=hfield_contacts)
+  return hfield_contacts
 
 
 def check_model(mjm: mujoco.MjModel) -> None:
@@ -620,7 +643,7 @@ def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
       outputs=[d.overflow, b.answer, b.normal],
     )
   wp.launch(
-    kernels.contacts,
+    contacts_kernel(SUPPORT_MODE_ID[opt.support_mode], c.hfield_ccd),
     dim=nthread_pair,
     inputs=[
       m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,

@@ -503,16 +503,18 @@ def _time_broad_phase(model, state, mode: str, explicit: np.ndarray, contact_max
 
 
 def bench_newton(path: str, nworlds: list[int], launches: int, settle_steps: int, nconmax: Optional[int] = None,
-                 broad_phases=BROAD_PHASES, mjd: Optional[mujoco.MjData] = None) -> list[NewtonResult]:
+                 broad_phases=BROAD_PHASES, mjd: Optional[mujoco.MjData] = None,
+                 keyframe: Optional[int] = None) -> list[NewtonResult]:
   """Times Newton's CollisionPipeline on ``path`` for each nworld and broad phase: inside the
-  poses of evolving stock MuJoCo Warp steps from the settled state, and repeated on the settled
-  state (frozen). See the module docstring for the settings."""
+  poses of evolving stock MuJoCo Warp steps from the settled state (bench.settled_state, from
+  keyframe ``keyframe`` if given), and repeated on the settled state (frozen). See the module
+  docstring for the settings."""
   import_newton()  # the error naming the extra before anything else
   from mjx_supportfield.bench import scene_name  # bench imports this module lazily: no cycle at import
   from mjx_supportfield.bench import settled_state
 
   mjm = mujoco.MjModel.from_xml_path(path)
-  mjd = mjd or settled_state(mjm, settle_steps)
+  mjd = mjd or settled_state(mjm, settle_steps, keyframe)
   world = build_world(path, mjm)
   fk, want, poses_how = _choose_poses(world, mjm, mjd)
   # contacts a world: 4x the room bench gives MuJoCo Warp (Newton's own estimate sizes for every

@@ -321,40 +321,47 @@ def static_geoms(mjm: mujoco.MjModel) -> list[int]:
           and (mjm.geom_contype[g] or mjm.geom_conaffinity[g])]
 
 
-def _hfield_height(mjm: mujoco.MjModel, g: int, x: float, y: float) -> Optional[float]:
-  """The heightfield's surface height over (x, y) in its frame (bilinear in the samples), or
-  None outside it."""
+def _hfield_heights(mjm: mujoco.MjModel, g: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+  """The heightfield's surface height over each (x, y) in its frame (bilinear in the samples),
+  NaN outside it."""
   h = mjm.geom_dataid[g]
   nrow, ncol = mjm.hfield_nrow[h], mjm.hfield_ncol[h]
   sx, sy, sz, _ = mjm.hfield_size[h]
-  if abs(x) > sx or abs(y) > sy:
-    return None
   data = mjm.hfield_data[mjm.hfield_adr[h]:mjm.hfield_adr[h] + nrow * ncol].reshape(nrow, ncol)
   u, v = (x + sx) / (2 * sx) * (ncol - 1), (y + sy) / (2 * sy) * (nrow - 1)
-  c, r = min(int(u), ncol - 2), min(int(v), nrow - 2)
+  c = np.clip(np.floor(u).astype(int), 0, ncol - 2)
+  r = np.clip(np.floor(v).astype(int), 0, nrow - 2)
   fu, fv = u - c, v - r
   top = data[r, c] * (1 - fu) + data[r, c + 1] * fu
   bottom = data[r + 1, c] * (1 - fu) + data[r + 1, c + 1] * fu
-  return float((top * (1 - fv) + bottom * fv) * sz)
+  height = (top * (1 - fv) + bottom * fv) * sz
+  return np.where((np.abs(x) > sx) | (np.abs(y) > sy), np.nan, height)
+
+
+def inside_static(mjm: mujoco.MjModel, points: np.ndarray, geom_xpos: np.ndarray, geom_xmat: np.ndarray,
+                  static: list[int]) -> np.ndarray:
+  """Which of ``points`` (..., 3) lie inside a static box, under a static plane or under a
+  heightfield's surface (geom_xpos and geom_xmat: one world's, (ngeom, 3) and (ngeom, 9))."""
+  p = np.asarray(points, dtype=float)
+  inside = np.zeros(p.shape[:-1], dtype=bool)
+  for g in static:
+    local = (p - geom_xpos[g]) @ geom_xmat[g].reshape(3, 3)  # rows: the points in the geom's frame
+    kind = int(mjm.geom_type[g])
+    if kind == mujoco.mjtGeom.mjGEOM_BOX:
+      inside |= np.all(np.abs(local) < mjm.geom_size[g], axis=-1)
+    elif kind == mujoco.mjtGeom.mjGEOM_PLANE:
+      inside |= local[..., 2] < 0.0
+    else:
+      with np.errstate(invalid="ignore"):
+        inside |= local[..., 2] < _hfield_heights(mjm, g, local[..., 0], local[..., 1])
+  return inside
 
 
 def fallen_through(mjm: mujoco.MjModel, mjd: mujoco.MjData, static: list[int]) -> list[int]:
   """Free bodies whose centre of mass lies inside a static box, under a static plane or under
   the heightfield's surface (mjd forward-computed)."""
-  out = []
-  for b in free_bodies(mjm):
-    p = mjd.xipos[b]
-    for g in static:
-      local = mjd.geom_xmat[g].reshape(3, 3).T @ (p - mjd.geom_xpos[g])
-      kind = int(mjm.geom_type[g])
-      if kind == mujoco.mjtGeom.mjGEOM_BOX:
-        inside = np.all(np.abs(local) < mjm.geom_size[g])
-      elif kind == mujoco.mjtGeom.mjGEOM_PLANE:
-        inside = local[2] < 0.0
-      else:
-        height = _hfield_height(mjm, g, local[0], local[1])
-        inside = height is not None and local[2] < height
-      if inside:
-        out.append(b)
-        break
-  return out
+  free = free_bodies(mjm)
+  if not free:
+    return []
+  inside = inside_static(mjm, mjd.xipos[free], mjd.geom_xpos, mjd.geom_xmat, static)
+  return [b for b, i in zip(free, inside) if i]

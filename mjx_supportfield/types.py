@@ -20,16 +20,17 @@ CONVEX_TYPES = (GeomType.SPHERE, GeomType.CAPSULE, GeomType.ELLIPSOID, GeomType.
 STOCK_TYPES = (GeomType.SDF,)
 
 
-def mode_module(name: str, mode: int) -> str:
+def mode_module(name: str, mode: int, part: str = "") -> str:
   """The Warp module that module ``name``'s kernels for support mode ``mode`` are built in, with
-  ``name``'s module options (enable_backward, fuse_fp).
+  ``name``'s module options (enable_backward, fuse_fp); with ``part``, one of that stage's modules.
 
-  One module a mode: a model compiles only the kernels of its own mode, as one module per stage
-  as before, and a second mode in the same process adds its own modules instead of rebuilding the
-  first's with both. Call it once a mode (from an lru_cache'd kernel factory): setting the
-  options marks the module modified.
+  One module a mode: a model compiles only the kernels of its own mode, and a second mode in the
+  same process adds its own modules instead of rebuilding the first's with both. A stage splits
+  its kernels into parts where one module would take minutes to build on a GPU: the parts build
+  side by side at first use (first_use.py). Call it once a mode and part (from an lru_cache'd
+  kernel factory): setting the options marks the module modified.
   """
-  module = f"{name}.{SUPPORT_MODE_NAME[mode]}"
+  module = f"{name}.{SUPPORT_MODE_NAME[mode]}" + (f".{part}" if part else "")
   wp.set_module_options(dict(wp.get_module_options(name)), module=module)
   return module
 

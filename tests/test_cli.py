@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from conftest import ROOT
 from conftest import model_path
@@ -139,6 +140,8 @@ def test_bench_nworld_must_be_positive_integers(capsys, text):
   (["--settle", "-1"], "--settle"),
   (["--nconmax", "0"], "--nconmax"),
   (["--device", "cuda:99"], "--device cuda:99"),
+  (["--keyframe", "-1"], "--keyframe must be >= 0"),
+  (["--keyframe", "0"], "convex_pile.xml has 0 keyframe(s)"),
 ])
 def test_bench_bad_numbers(capsys, argv, needle):
   rc, out, err = _run(capsys, ["bench", model_path("convex_pile"), *argv])
@@ -162,6 +165,22 @@ def test_bench_on_the_cpu(tmp_path, capsys, monkeypatch):
   data = json.loads(results.read_text())
   assert "gpu" not in data and data["device"] == bench.device_description() and data["device"].startswith("CPU: ")
   assert sorted({r["nworld"] for r in data["rows"]}) == [1, 2]
+
+
+def test_settled_state_from_a_keyframe():
+  """bench's start: settled from the keyframe when asked (the terrain robots' qpos0 puts them in
+  the ground, their keyframe on it), from qpos0 otherwise."""
+  import mujoco
+
+  from mjx_supportfield import bench
+
+  mjm = mujoco.MjModel.from_xml_path(model_path(os.path.join("real", "quadruped_rough")))
+  at_key, at_qpos0 = bench.settled_state(mjm, 0, keyframe=0), bench.settled_state(mjm, 0)
+  np.testing.assert_array_equal(at_key.qpos, mjm.key_qpos[0])
+  np.testing.assert_array_equal(at_qpos0.qpos, mjm.qpos0)
+  assert at_key.contact.dist[: at_key.ncon].min() > at_qpos0.contact.dist[: at_qpos0.ncon].min()
+  with pytest.raises(ValueError, match="keyframe 1: the model has 1 keyframe"):
+    bench.settled_state(mjm, 0, keyframe=1)
 
 
 def test_plot_missing_file(tmp_path, capsys):

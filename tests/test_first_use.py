@@ -2,6 +2,7 @@
 how long; the plugin's first collision planned without side effects; the watch gone afterwards."""
 
 import logging
+import os
 import random
 
 import mujoco_warp as mjw
@@ -63,9 +64,9 @@ def _pretend_uncached(monkeypatch):
   def will_compile(module, device, block_dim):
     return id(module) not in noted
 
-  def noting(self, module, device):
+  def noting(self, module, device, done=False):
     noted.add(id(module))
-    note(self, module, device)
+    note(self, module, device, done)
 
   monkeypatch.setattr(first_use, "_will_compile", will_compile)
   monkeypatch.setattr(first_use._Stage, "note", noting)
@@ -86,6 +87,23 @@ def test_first_collision_is_planned_and_counted(monkeypatch, caplog):
     [f"[{i}/{count}" for i in range(1, count + 1)]
   assert f"{count} modules compiled in" in notes[-1]
   assert any("mjx_supportfield.narrowphase" in n for n in notes)
+  # built side by side before the collision runs, each noted once built
+  numbered = [n for n in notes if n.strip().startswith("[")][-count:]
+  assert all(n.split("]")[1].split("(")[0].strip().endswith(" built") for n in numbered), numbered
+  assert ("at a time" in header[0]) == (first_use._build_workers() > 1)
+
+
+def test_build_threads_follow_the_environment(monkeypatch, caplog):
+  """MJX_SUPPORTFIELD_BUILD_THREADS sets the threads that build a first collision's modules; a value
+  that is no integer is named in a warning and the default (a thread a core, up to 8) holds."""
+  monkeypatch.setenv("MJX_SUPPORTFIELD_BUILD_THREADS", "3")
+  assert first_use._build_workers() == 3
+  monkeypatch.setenv("MJX_SUPPORTFIELD_BUILD_THREADS", "0")
+  assert first_use._build_workers() == 1
+  monkeypatch.setenv("MJX_SUPPORTFIELD_BUILD_THREADS", "many")
+  with caplog.at_level(logging.WARNING, logger="mjx_supportfield"):
+    assert first_use._build_workers() == max(1, min(os.cpu_count() or 1, 8))
+  assert any("'many' is not an integer" in n for n in _notes(caplog))
 
 
 def test_planned_first_collision_leaves_no_trace():

@@ -83,3 +83,48 @@ def test_script_exits_with_the_refusal(tmp_path):
   run = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "soak.py"), "--resume", missing],
                        capture_output=True, text=True, cwd=ROOT)
   assert run.returncode == 2 and f"soak: no checkpoint at {missing}" in run.stderr
+
+
+def _soak_module():
+  sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+  import soak  # noqa: PLC0415 - a script of benchmarks/, not a package
+
+  return soak
+
+
+def test_ground_finds_a_body_through_the_terrain():
+  """The soak's ground check: nothing is through the ground at the keyframe; a robot's trunk moved
+  under the heightfield's surface in one world is reported with that world and body."""
+  soak = _soak_module()
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
+  m = mjw.put_model(mjm)
+  mjd = soak.real_scenes.initial_data(mjm)
+  d = mjw.put_data(mjm, mjd, nworld=3, nconmax=64, njmax=256)
+  mjw.kinematics(m, d)
+  ground = soak.Ground(mjm)
+  assert ground.bodies_through(d) == []
+  trunk = soak.real_scenes.free_bodies(mjm)[0]
+  qpos = d.qpos.numpy()
+  qpos[1, mjm.jnt_qposadr[mjm.body_jntadr[trunk]] + 2] -= 1.0  # a metre down: under any tile
+  d.qpos.assign(qpos)
+  mjw.kinematics(m, d)
+  assert (1, mjm.body(trunk).name) in ground.bodies_through(d)
+  assert all(w == 1 for w, _ in ground.bodies_through(d))
+
+
+def test_masked_reset_touches_only_the_worlds_it_ends():
+  """Episodes.reset resets the worlds whose episode ends (to the keyframe, shifted) and leaves
+  the others' state as it was."""
+  soak = _soak_module()
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
+  m = mjw.put_model(mjm)
+  d = mjw.put_data(mjm, soak.real_scenes.initial_data(mjm), nworld=4, nconmax=64, njmax=256)
+  d.qpos.assign(d.qpos.numpy() + 0.01)
+  before = d.qpos.numpy()
+  episodes = soak.Episodes(mjm, m, 4, 0.0, 2)
+  episodes.reset(d, 0)  # chunk 0: worlds with (0 + w) % 2 == 1
+  after = d.qpos.numpy()
+  assert episodes.resets == 2
+  np.testing.assert_array_equal(after[[0, 2]], before[[0, 2]])
+  for w in (1, 3):
+    assert np.abs(after[w] - episodes.qpos0).max() <= soak.RESET_SHIFT + 1e-6

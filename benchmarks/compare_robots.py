@@ -24,7 +24,7 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))  # this checkout's package, as the other benchmarks
 import robosuite_arms  # noqa: E402
 
-from mjx_supportfield import compare  # noqa: E402
+from mjx_supportfield.tools import compare  # noqa: E402
 
 
 def scenes() -> dict:

@@ -24,8 +24,8 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src.types import DeterminismType
 
-from mjx_supportfield import contact_sort
-from mjx_supportfield.install import install
+from mjx_supportfield.driver import install
+from mjx_supportfield.launch import contact_sort
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

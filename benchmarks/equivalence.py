@@ -32,11 +32,11 @@ sys.path.insert(0, HERE)
 
 import make_scenes  # noqa: E402
 
-from mjx_supportfield.bench import settled_state  # noqa: E402
-from mjx_supportfield.contact_sort import FIELDS  # noqa: E402
-from mjx_supportfield.install import install  # noqa: E402
-from mjx_supportfield.install import uninstall  # noqa: E402
+from mjx_supportfield.driver import install  # noqa: E402
+from mjx_supportfield.driver import uninstall  # noqa: E402
+from mjx_supportfield.launch.contact_sort import FIELDS  # noqa: E402
 from mjx_supportfield.options import Options  # noqa: E402
+from mjx_supportfield.tools.bench import settled_state  # noqa: E402
 
 PRESETS = {
   "default": {},

@@ -13,7 +13,7 @@ For each scene:
    further: what gravity presses together is pressed deeper, without running a different
    simulation. Articulated robots keep their joints (the Go1's floating base is a free
    body and sinks into the terrain).
-3. ``mjx_supportfield.compare.compare_states`` on both sets for each implementation: MuJoCo C's
+3. ``mjx_supportfield.tools.compare.compare_states`` on both sets for each implementation: MuJoCo C's
    deep points (>= 0.5 mm) missed (no contact of the same geom pair within 3 mm), normals more
    than 5 deg from MuJoCo C's and worse by exact overlap, contact points off their shapes.
 4. Unless ``--no-rollout``: ``--worlds`` worlds rolled out through ``mjw.step`` with each
@@ -58,25 +58,25 @@ import mujoco_warp as mjw  # noqa: E402
 import warp as wp  # noqa: E402
 
 import mjx_supportfield  # noqa: E402
-from mjx_supportfield.compare import compare_states  # noqa: E402
 from mjx_supportfield.options import Options  # noqa: E402
-from mjx_supportfield.real_scenes import JITTER  # noqa: E402
-from mjx_supportfield.real_scenes import MODELS  # noqa: E402
-from mjx_supportfield.real_scenes import SCENES  # noqa: E402
-from mjx_supportfield.real_scenes import SQUEEZE_MAX  # noqa: E402
-from mjx_supportfield.real_scenes import SQUEEZE_MIN  # noqa: E402
-from mjx_supportfield.real_scenes import Scene  # noqa: E402
-from mjx_supportfield.real_scenes import control  # noqa: E402
-from mjx_supportfield.real_scenes import deepest_penetration  # noqa: E402
-from mjx_supportfield.real_scenes import fallen_through  # noqa: E402
-from mjx_supportfield.real_scenes import free_bodies  # noqa: E402
-from mjx_supportfield.real_scenes import initial_data  # noqa: E402
-from mjx_supportfield.real_scenes import jittered  # noqa: E402
-from mjx_supportfield.real_scenes import load  # noqa: E402
-from mjx_supportfield.real_scenes import replay_mujoco  # noqa: E402
-from mjx_supportfield.real_scenes import rollout_mujoco  # noqa: E402
-from mjx_supportfield.real_scenes import squeeze  # noqa: E402
-from mjx_supportfield.real_scenes import static_geoms  # noqa: E402
+from mjx_supportfield.tools.compare import compare_states  # noqa: E402
+from scenelib.real_scenes import JITTER  # noqa: E402
+from scenelib.real_scenes import MODELS  # noqa: E402
+from scenelib.real_scenes import SCENES  # noqa: E402
+from scenelib.real_scenes import SQUEEZE_MAX  # noqa: E402
+from scenelib.real_scenes import SQUEEZE_MIN  # noqa: E402
+from scenelib.real_scenes import Scene  # noqa: E402
+from scenelib.real_scenes import control  # noqa: E402
+from scenelib.real_scenes import deepest_penetration  # noqa: E402
+from scenelib.real_scenes import fallen_through  # noqa: E402
+from scenelib.real_scenes import free_bodies  # noqa: E402
+from scenelib.real_scenes import initial_data  # noqa: E402
+from scenelib.real_scenes import jittered  # noqa: E402
+from scenelib.real_scenes import load  # noqa: E402
+from scenelib.real_scenes import replay_mujoco  # noqa: E402
+from scenelib.real_scenes import rollout_mujoco  # noqa: E402
+from scenelib.real_scenes import squeeze  # noqa: E402
+from scenelib.real_scenes import static_geoms  # noqa: E402
 
 wp.config.quiet = True  # Warp's line per module loaded would drown the progress lines
 if hasattr(wp.config, "log_level"):

@@ -41,10 +41,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 
-from mjx_supportfield import real_scenes  # noqa: E402
-from mjx_supportfield.bench import settled_state  # noqa: E402
-from mjx_supportfield.install import install  # noqa: E402
+from scenelib import real_scenes  # noqa: E402
+from mjx_supportfield.driver import install  # noqa: E402
 from mjx_supportfield.options import Options  # noqa: E402
+from mjx_supportfield.tools.bench import settled_state  # noqa: E402
 
 PRESETS = {  # as benchmarks/equivalence.py's
   "default": {},

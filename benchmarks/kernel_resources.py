@@ -24,15 +24,15 @@ import time
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
-from mjx_supportfield import broadphase
-from mjx_supportfield import deep_pairs
-from mjx_supportfield import heightfield
-from mjx_supportfield import multicontact_pass
-from mjx_supportfield import narrowphase
-from mjx_supportfield import nonconvex
-from mjx_supportfield import routing
 from mjx_supportfield.options import Options
-from mjx_supportfield.types import SUPPORT_MODE_ID
+from mjx_supportfield.stages import broadphase
+from mjx_supportfield.stages import deep_pairs
+from mjx_supportfield.stages import heightfield
+from mjx_supportfield.stages import multicontact_pass
+from mjx_supportfield.stages import narrowphase
+from mjx_supportfield.stages import nonconvex
+from mjx_supportfield.stages import routing
+from mjx_supportfield.types import SupportMode
 
 # broad-phase kernels are built per model; this key is a model without per-world sizes or sleep
 _KEY = (0, 1, 1, 1, 1, 1, 1, False, False)
@@ -40,7 +40,7 @@ _KEY = (0, 1, 1, 1, 1, 1, 1, False, False)
 _PRIMITIVE_PAIRS = tuple(t for t in routing.ANALYTIC_PAIRS if GeomType.MESH not in t)
 
 # the support-mode factories' kernels are reported for the default mode
-_MODE = SUPPORT_MODE_ID[Options().support_mode]
+_MODE = SupportMode.of(Options().support_mode)
 
 ENTRY = re.compile(r"Compiling entry function '([^']+)'")
 USAGE = re.compile(r"Used (\d+) registers(?:.*?(\d+) bytes cumulative stack size)?")

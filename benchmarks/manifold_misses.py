@@ -37,10 +37,10 @@ import sys
 import mujoco
 import numpy as np
 
-from mjx_supportfield import compare
-from mjx_supportfield.faceclip import DISK_CORNERS
-from mjx_supportfield.faceclip import FACE_PAIR_BUDGET
+from mjx_supportfield.geometry.faceclip import DISK_CORNERS
+from mjx_supportfield.geometry.faceclip import FACE_PAIR_BUDGET
 from mjx_supportfield.options import Options
+from mjx_supportfield.tools import compare
 
 FACE_TOL = 0.996  # MuJoCo's multi-CCD tolerance (engine_collision_gjk.h), as faceclip imports it
 NORMAL_APART_DEG = 10.0

@@ -33,10 +33,10 @@ sys.path.insert(0, HERE)
 
 import make_scenes  # noqa: E402
 
-from mjx_supportfield import bench  # noqa: E402
-from mjx_supportfield import contact_sort  # noqa: E402
-from mjx_supportfield.install import collision  # noqa: E402
-from mjx_supportfield.install import install  # noqa: E402
+from mjx_supportfield.driver import collision  # noqa: E402
+from mjx_supportfield.driver import install  # noqa: E402
+from mjx_supportfield.launch import contact_sort  # noqa: E402
+from mjx_supportfield.tools import bench  # noqa: E402
 
 CHECK_STEPS = 10
 

@@ -33,16 +33,16 @@ def import_kernel_modules():
       if info.name.endswith("_test") or info.name.startswith("__"):
         continue
       importlib.import_module(f"{pkg.__name__}.{info.name}")
-  from mjx_supportfield import deep_pairs
-  from mjx_supportfield import heightfield
-  from mjx_supportfield import multicontact_pass
-  from mjx_supportfield import narrowphase
-  from mjx_supportfield import nonconvex
+  from mjx_supportfield.stages import deep_pairs
+  from mjx_supportfield.stages import heightfield
+  from mjx_supportfield.stages import multicontact_pass
+  from mjx_supportfield.stages import narrowphase
+  from mjx_supportfield.stages import nonconvex
   from mjx_supportfield.options import Options
-  from mjx_supportfield.types import SUPPORT_MODE_ID
+  from mjx_supportfield.types import SupportMode
 
   # the support-mode factories' kernels, for the default mode (the others compile on first use)
-  mode = SUPPORT_MODE_ID[Options().support_mode]
+  mode = SupportMode.of(Options().support_mode)
   for use_gjk in (False, True):
     narrowphase.convex_kernel(use_gjk, mode)
   narrowphase.sift_mpr_pairs(mode)

@@ -12,7 +12,7 @@ reported as the rest (solver, kinematics, ...), with the mean solver iterations.
 A variant is ``default`` or Options fields as ``key=value;key=value`` (Python literals), e.g.
 ``multi_contact=False;mpr_refine=0``. One more key, ``max_registers=N``, rebuilds the MPR, GJK,
 tilt, patch and heightfield MPR kernels with at most N registers a thread instead of
-narrowphase.HEAVY_REGISTERS (Warp's ``cuda_max_registers``; 255 lifts the cap) for that variant.
+launch.grid.HEAVY_REGISTERS (Warp's ``cuda_max_registers``; 255 lifts the cap) for that variant.
 """
 
 import argparse
@@ -26,12 +26,12 @@ import mujoco
 import mujoco_warp as mjw
 import warp as wp
 
-from mjx_supportfield import heightfield
-from mjx_supportfield import multicontact_pass
-from mjx_supportfield import narrowphase
-from mjx_supportfield.bench import settled_state
-from mjx_supportfield.install import install
+from mjx_supportfield.driver import install
 from mjx_supportfield.options import Options
+from mjx_supportfield.stages import heightfield
+from mjx_supportfield.stages import multicontact_pass
+from mjx_supportfield.stages import narrowphase
+from mjx_supportfield.tools.bench import settled_state
 
 
 def _value(text: str):

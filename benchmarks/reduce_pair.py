@@ -19,7 +19,7 @@ import sys
 import mujoco
 import numpy as np
 
-from mjx_supportfield import compare
+from mjx_supportfield.tools import compare
 
 
 def _fmt(v) -> str:

@@ -13,7 +13,7 @@ Compiling MuJoCo Warp's step and the plugin for a new scene takes minutes on the
 runs, which then go one scene at a time.
 
 ``--newton`` adds Newton 1.8's collision pipeline on the same poses (the ``newton`` extra;
-``mjx_supportfield/newton_bench.py``): the JSON gains ``newton`` entries (best broad phase and its
+``mjx_supportfield/tools/newton_bench.py``): the JSON gains ``newton`` entries (best broad phase and its
 ms inside the evolving poses, each broad phase's ms in steps and frozen, contacts per world).
 """
 
@@ -36,11 +36,11 @@ sys.path.insert(0, HERE)
 
 import make_scenes  # noqa: E402
 
-from mjx_supportfield import bench  # noqa: E402
-from mjx_supportfield import broadphase  # noqa: E402
-from mjx_supportfield.install import get_collider  # noqa: E402
-from mjx_supportfield.install import install  # noqa: E402
+from mjx_supportfield.driver import get_collider  # noqa: E402
+from mjx_supportfield.driver import install  # noqa: E402
 from mjx_supportfield.options import Options  # noqa: E402
+from mjx_supportfield.stages import broadphase  # noqa: E402
+from mjx_supportfield.tools import bench  # noqa: E402
 
 MJW_DATA = os.path.join(os.path.dirname(mjw.__file__), "test_data")
 SCENES = {  # name: (path, nworlds)
@@ -151,7 +151,7 @@ def main(argv=None):
   args = p.parse_args(argv)
   newton_bench = None
   if args.newton:
-    from mjx_supportfield import newton_bench
+    from mjx_supportfield.tools import newton_bench
 
     try:
       newton_bench.import_newton()

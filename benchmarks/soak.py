@@ -64,21 +64,21 @@ sys.path.insert(0, HERE)
 
 import make_scenes  # noqa: E402
 
-from mjx_supportfield import real_scenes  # noqa: E402
+from scenelib import real_scenes  # noqa: E402
 
-from mjx_supportfield import bench  # noqa: E402
-from mjx_supportfield.checkpoint import FORMAT  # noqa: E402
-from mjx_supportfield.checkpoint import WARMSTART  # noqa: E402
-from mjx_supportfield.checkpoint import CheckpointError  # noqa: E402
-from mjx_supportfield.checkpoint import check_resume  # noqa: E402
-from mjx_supportfield.checkpoint import load_checkpoint  # noqa: E402
-from mjx_supportfield.checkpoint import read_state  # noqa: E402
-from mjx_supportfield.checkpoint import resume_start  # noqa: E402
-from mjx_supportfield.checkpoint import save_checkpoint  # noqa: E402
-from mjx_supportfield.checkpoint import scene_sha256  # noqa: E402
-from mjx_supportfield.checkpoint import write_state  # noqa: E402
-from mjx_supportfield.install import get_collider  # noqa: E402
-from mjx_supportfield.install import install  # noqa: E402
+from mjx_supportfield.tools import bench  # noqa: E402
+from scenelib.checkpoint import FORMAT  # noqa: E402
+from scenelib.checkpoint import WARMSTART  # noqa: E402
+from scenelib.checkpoint import CheckpointError  # noqa: E402
+from scenelib.checkpoint import check_resume  # noqa: E402
+from scenelib.checkpoint import load_checkpoint  # noqa: E402
+from scenelib.checkpoint import read_state  # noqa: E402
+from scenelib.checkpoint import resume_start  # noqa: E402
+from scenelib.checkpoint import save_checkpoint  # noqa: E402
+from scenelib.checkpoint import scene_sha256  # noqa: E402
+from scenelib.checkpoint import write_state  # noqa: E402
+from mjx_supportfield.driver import get_collider  # noqa: E402
+from mjx_supportfield.driver import install  # noqa: E402
 
 SPEED = 0.05  # m/s (and rad/s) of the random initial velocities
 RESET_SHIFT = 0.05  # m: how far a reset world's robots are moved horizontally from the keyframe

@@ -6,7 +6,7 @@
 Every engine steps the scene from its initial state (nworld=1 for MuJoCo Warp) and records, at
 each step, the free bodies' positions and orientations (qpos) and the contacts (geom pair,
 position). The figures (drift, contact motion, whether the stack stands; defined in
-``mjx_supportfield.stability``) are over the window after settling (steps ``settle`` to ``steps``).
+``scenelib.stability``) are over the window after settling (steps ``settle`` to ``steps``).
 
 tests/test_stability.py measures with the same ``simulate`` and ``measure``, so the test and
 this table measure the same thing.
@@ -19,16 +19,16 @@ import time
 
 import mujoco
 
-from mjx_supportfield.stability import ENGINES
-from mjx_supportfield.stability import MAX_CONTACT_MOTION
-from mjx_supportfield.stability import MAX_DRIFT
-from mjx_supportfield.stability import SCENES
-from mjx_supportfield.stability import STAND_TILT
-from mjx_supportfield.stability import STAND_XY
-from mjx_supportfield.stability import STAND_Z
-from mjx_supportfield.stability import measure
-from mjx_supportfield.stability import model_path
-from mjx_supportfield.stability import simulate
+from scenelib.stability import ENGINES
+from scenelib.stability import MAX_CONTACT_MOTION
+from scenelib.stability import MAX_DRIFT
+from scenelib.stability import SCENES
+from scenelib.stability import STAND_TILT
+from scenelib.stability import STAND_XY
+from scenelib.stability import STAND_Z
+from scenelib.stability import measure
+from scenelib.stability import model_path
+from scenelib.stability import simulate
 
 
 def run(scenes, engines, nstep: int, settle: int, log=print) -> dict:

@@ -22,8 +22,8 @@ import mujoco
 import numpy as np
 import warp as wp
 
-from mjx_supportfield import support as sp
-from mjx_supportfield import support_field as sf
+from mjx_supportfield.geometry import support as sp
+from mjx_supportfield.geometry import support_field as sf
 from mjx_supportfield.types import MeshSupport
 
 QUERIES_PER_THREAD = 16

@@ -39,9 +39,9 @@ import mujoco_warp as mjw  # noqa: E402
 import warp as wp  # noqa: E402
 
 import fidelity  # noqa: E402
-from mjx_supportfield.compare import mujoco_reference  # noqa: E402
-from mjx_supportfield.compare import warp_contacts  # noqa: E402
 from mjx_supportfield.options import Options  # noqa: E402
+from mjx_supportfield.tools.compare import mujoco_reference  # noqa: E402
+from mjx_supportfield.tools.compare import warp_contacts  # noqa: E402
 
 wp.config.quiet = True
 

@@ -29,8 +29,8 @@ from concurrent.futures import ThreadPoolExecutor
 import warp as wp
 from warp._src.context import user_modules
 
-from mjx_supportfield import bench
 from mjx_supportfield.options import Options
+from mjx_supportfield.tools import bench
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import run_suite  # noqa: E402

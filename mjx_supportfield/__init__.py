@@ -18,24 +18,25 @@ minute on a CPU, minutes on a GPU); the plugin says what compiles and roughly ho
 
 import importlib
 import importlib.util
-import sys
-import types
 
 from mjx_supportfield.options import Options
 
 __version__ = "0.1.0"
 
-# Warp and MuJoCo Warp take seconds to import: the functions that need them are imported on first
-# use, so that ``import mjx_supportfield`` (and ``mjx-supportfield --help``) stays fast.
+# The public face, re-exported from where it lives. Warp and MuJoCo Warp take seconds to import, so
+# the names that need them are imported on first use: ``import mjx_supportfield`` (and
+# ``mjx-supportfield --help``) stays fast.
 _LAZY = {
-  "install": "mjx_supportfield.install",
-  "uninstall": "mjx_supportfield.install",
-  "collision": "mjx_supportfield.install",
-  "get_collider": "mjx_supportfield.install",
+  "install": "mjx_supportfield.driver",
+  "uninstall": "mjx_supportfield.driver",
+  "collision": "mjx_supportfield.driver",
+  "get_collider": "mjx_supportfield.driver",
+  "Collider": "mjx_supportfield.collider",
   "CollisionStats": "mjx_supportfield.stats",
 }
 
-__all__ = ["Options", "install", "uninstall", "collision", "get_collider", "CollisionStats", "__version__"]
+__all__ = ["Options", "install", "uninstall", "collision", "get_collider", "Collider", "CollisionStats",
+           "__version__"]
 
 
 def __getattr__(name):
@@ -43,7 +44,7 @@ def __getattr__(name):
     value = getattr(importlib.import_module(_LAZY[name]), name)
     globals()[name] = value
     return value
-  # a submodule (mjx_supportfield.collider, ...): importing the package used to import them all
+  # a subpackage or module (mjx_supportfield.stages, ...): loaded on first access
   if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
     return importlib.import_module(f"{__name__}.{name}")
   raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -51,17 +52,3 @@ def __getattr__(name):
 
 def __dir__():
   return sorted(set(globals()) | set(_LAZY))
-
-
-class _Package(types.ModuleType):
-  """The package module: keeps the function ``install`` when its submodule is imported."""
-
-  def __setattr__(self, name, value):
-    # importing a submodule binds it on the package: ``mjx_supportfield.install`` would then be the
-    # module mjx_supportfield/install.py instead of the function, as it was before lazy imports
-    if name in _LAZY and isinstance(value, types.ModuleType):
-      return
-    super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package

@@ -2,6 +2,6 @@
 
 import sys
 
-from mjx_supportfield.cli import main
+from mjx_supportfield.tools.cli import main
 
 sys.exit(main())

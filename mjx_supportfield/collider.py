@@ -20,27 +20,28 @@ from mujoco_warp._src.types import EnableBit
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
-from mjx_supportfield import broadphase
-from mjx_supportfield import contact_quota
-from mjx_supportfield import contact_sort
-from mjx_supportfield import deep_pairs
-from mjx_supportfield import first_use
-from mjx_supportfield import heightfield
-from mjx_supportfield import multicontact_pass
-from mjx_supportfield import nonconvex
-from mjx_supportfield import narrowphase
-from mjx_supportfield import routing
-from mjx_supportfield import stage_ends
-from mjx_supportfield import warmstart
+from mjx_supportfield.geometry.sdf import build_mesh_sdf
+from mjx_supportfield.geometry.support_field import MAX_HULL
+from mjx_supportfield.geometry.support_field import build_mesh_support
+from mjx_supportfield.geometry.support_field import hull_vertex_count
+from mjx_supportfield.geometry.support_field import too_large
+from mjx_supportfield.launch import contact_quota
+from mjx_supportfield.launch import contact_sort
+from mjx_supportfield.launch import first_use
 from mjx_supportfield.options import NXN_MAX_PAIRS
 from mjx_supportfield.options import Options
-from mjx_supportfield.sdf import build_mesh_sdf
-from mjx_supportfield.support_field import MAX_HULL
-from mjx_supportfield.support_field import build_mesh_support
-from mjx_supportfield.support_field import hull_vertex_count
-from mjx_supportfield.support_field import too_large
+from mjx_supportfield.stages import broadphase
+from mjx_supportfield.stages import deep_pairs
+from mjx_supportfield.stages import heightfield
+from mjx_supportfield.stages import multicontact_pass
+from mjx_supportfield.stages import narrowphase
+from mjx_supportfield.stages import nonconvex
+from mjx_supportfield.stages import routing
+from mjx_supportfield.stages import stage_ends
+from mjx_supportfield.stages import warmstart
 from mjx_supportfield.types import CONVEX_TYPES
 from mjx_supportfield.types import STOCK_TYPES
+from mjx_supportfield.types import SupportMode
 
 _STATE_ATTR = "_mjx_supportfield_state"
 STOCK_COLLISION = collision_driver.collision  # MuJoCo Warp's own, taken before install() routes it here
@@ -108,6 +109,7 @@ class Collider:
     if options.contacts_per_world and m.opt.enableflags & EnableBit.SLEEP:
       raise ValueError(_SLEEP_QUOTA)
     self.options, self.ngeom = options, mjm.ngeom
+    self.support_mode = SupportMode.of(options.support_mode)  # the kernels' factories' key
     # every model-sized array of a Data: a Data made for another model differs in one of them
     self.data_sizes = {field: int(getattr(mjm, size)) for field, size in _DATA_SIZES}
     self.device = device = m.geom_type.device

@@ -70,7 +70,8 @@ class Options:
       ellipsoids, which touch in one point); analytic pairs keep MuJoCo's own multi-point
       routines either way. Default True. False: one contact per pair, faster, less stable resting
       contact of faces and edges.
-    max_contacts_per_pair: contacts per MPR pair with multi_contact. Default 5, integer 1 to 5.
+    max_contacts_per_pair: contacts per MPR pair with multi_contact (``mpr_pair_contacts``), and
+      the cap of the spread choice on terrain and non-convex pairs. Default 5, integer 1 to 5.
     mc_perturbation: tilt angle [rad] of the perturbed poses. Default 1e-2, 1e-5 to 0.2. Rarely
       worth changing.
     mc_tolerance: points closer than this fraction of the smaller geom's box size are duplicates.
@@ -137,6 +138,12 @@ class Options:
   hfield_mprs_per_pair: int = 16
   contacts_per_world: int = 0
   stock_for_analytic_models: bool = True
+
+  @property
+  def mpr_pair_contacts(self) -> int:
+    """Contacts an MPR pair may write: ``max_contacts_per_pair`` with ``multi_contact``, else 1
+    (the narrow phase and the deep-pair check, which answer MPR pairs, read it here)."""
+    return self.max_contacts_per_pair if self.multi_contact else 1
 
   def __post_init__(self):
     _check_int("support_res", self.support_res, 4, 4096)

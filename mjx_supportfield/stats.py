@@ -7,7 +7,7 @@ import numpy as np
 
 
 class CollisionStats(dict):
-  """The counters of the last collision on a Data: a dict, as before, that prints as a summary.
+  """The counters of the last collision on a Data: a dict that prints as a summary.
 
   Keys (the raw values, per world where the name says so):
     pairs: broad-phase pairs kept, all worlds together.
@@ -130,8 +130,9 @@ def collect(c, d, st) -> CollisionStats:
                            "dropped_contacts": max(0, int(d.nacon.numpy()[0]) - d.naconmax)})
   if st is None:
     return CollisionStats({**_NO_COUNTS, "path": "plugin"})
-  from mjx_supportfield.heightfield import COUNT_CCD_AS_MPR  # the heightfield module builds kernels on import
-  from mjx_supportfield.heightfield import COUNT_UNQUEUED
+  # here, not at the top: CollisionStats alone needs neither the stage nor Warp
+  from mjx_supportfield.stages.heightfield import COUNT_CCD_AS_MPR
+  from mjx_supportfield.stages.heightfield import COUNT_UNQUEUED
 
   broad = st.broad
   return CollisionStats({

@@ -1,5 +1,7 @@
 """Device-side types shared by the pipeline stages."""
 
+import enum
+
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
@@ -7,12 +9,22 @@ from mujoco_warp._src.types import GeomType
 # negated, a maximum) and the sentinel of an empty answer
 FAR = 1.0e30
 
-# support_mode as the kernel factories take it: fixed when a kernel is generated, not a kernel input
-SUPPORT_FIELD = 0
-SUPPORT_REFINED = 1
-SUPPORT_EXACT = 2
-SUPPORT_MODE_ID = {"field": SUPPORT_FIELD, "refined": SUPPORT_REFINED, "exact": SUPPORT_EXACT}
-SUPPORT_MODE_NAME = {i: name for name, i in SUPPORT_MODE_ID.items()}
+
+class SupportMode(enum.IntEnum):
+  """Options.support_mode as the kernel factories take it: fixed when a kernel is generated, not
+  a kernel input. The Collider turns the option's name into one once (``SupportMode.of``)."""
+
+  FIELD = 0
+  REFINED = 1
+  EXACT = 2
+
+  @classmethod
+  def of(cls, name: str) -> "SupportMode":
+    """The mode of an Options.support_mode name ("field", "refined", "exact")."""
+    return cls[name.upper()]
+
+
+SUPPORT_FIELD, SUPPORT_REFINED, SUPPORT_EXACT = SupportMode.FIELD, SupportMode.REFINED, SupportMode.EXACT
 
 # convex geom types: the plugin's own narrow phase (MPR or analytic), also against heightfields
 CONVEX_TYPES = (GeomType.SPHERE, GeomType.CAPSULE, GeomType.ELLIPSOID, GeomType.CYLINDER, GeomType.BOX, GeomType.MESH)
@@ -30,7 +42,7 @@ def mode_module(name: str, mode: int, part: str = "") -> str:
   side by side at first use (first_use.py). Call it once a mode and part (from an lru_cache'd
   kernel factory): setting the options marks the module modified.
   """
-  module = f"{name}.{SUPPORT_MODE_NAME[mode]}" + (f".{part}" if part else "")
+  module = f"{name}.{SupportMode(mode).name.lower()}" + (f".{part}" if part else "")
   wp.set_module_options(dict(wp.get_module_options(name)), module=module)
   return module
 

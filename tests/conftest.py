@@ -18,6 +18,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MODELS = os.path.join(ROOT, "models")
 if ROOT not in sys.path:
   sys.path.insert(0, ROOT)
+# benchmarks/scenelib: the repository's scenes and measures (not part of the installed package)
+if os.path.join(ROOT, "benchmarks") not in sys.path:
+  sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
 import warp as wp  # noqa: E402
 

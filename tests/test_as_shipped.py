@@ -16,7 +16,7 @@ from conftest import contact_table
 from conftest import contacts
 
 import mjx_supportfield as sf
-from mjx_supportfield.support_field import MAX_HULL
+from mjx_supportfield.geometry.support_field import MAX_HULL
 
 MESHES = f"{ROOT}/tests/data/repro/meshes"
 

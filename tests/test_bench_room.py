@@ -3,7 +3,7 @@
 from conftest import model_path
 from mujoco_warp._src.types import OverflowType
 
-from mjx_supportfield import bench
+from mjx_supportfield.tools import bench
 
 _PAIRS = int(OverflowType.BROADPHASE)
 

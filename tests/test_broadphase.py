@@ -8,7 +8,7 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
 import mjx_supportfield as sf
-from mjx_supportfield import routing as nph
+from mjx_supportfield.stages import routing as nph
 from conftest import contacts
 from conftest import load
 from conftest import random_quat
@@ -334,7 +334,7 @@ def test_occupancy_is_asked_once_per_kernel_and_device(monkeypatch):
   call a step otherwise), keyed so that Warp's Device, which is not hashable, can be a key."""
   import warp as wp
 
-  from mjx_supportfield import broadphase
+  from mjx_supportfield.stages import broadphase
 
   calls = []
 

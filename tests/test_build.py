@@ -4,9 +4,9 @@ Warp unrolls fixed loops of up to 16 iterations, and CUDA inlines every call: a 
 called inside such a loop is copied into the module once per iteration. The heightfield
 module once held 29 inlined MPRs and never finished building for CUDA (over 20 minutes); the
 non-convex one took over 45. Checked on the CUDA source Warp generates (no GPU needed): each
-costly routine has one call site in its module, or one in each kernel that needs it (the
-heightfield's MPR job and cell tests: in the queue's kernels and in the contact kernel, which
-runs the jobs the queue had no room for).
+costly routine has one call site in its module (the heightfield's MPR job and cell tests: one in
+the queue's modules and one in the contact kernel's, which runs the jobs the queue had no room
+for).
 """
 
 import importlib
@@ -18,13 +18,13 @@ import warp as wp
 from warp._src.context import ModuleBuilder
 
 import mjx_supportfield
-from mjx_supportfield import broadphase
-from mjx_supportfield import deep_pairs
-from mjx_supportfield import heightfield
-from mjx_supportfield import multicontact_pass
-from mjx_supportfield import narrowphase
-from mjx_supportfield import nonconvex
-from mjx_supportfield import routing
+from mjx_supportfield.stages import broadphase
+from mjx_supportfield.stages import deep_pairs
+from mjx_supportfield.stages import heightfield
+from mjx_supportfield.stages import multicontact_pass
+from mjx_supportfield.stages import narrowphase
+from mjx_supportfield.stages import nonconvex
+from mjx_supportfield.stages import routing
 from mjx_supportfield.types import SUPPORT_EXACT
 from mjx_supportfield.types import SUPPORT_FIELD
 from mjx_supportfield.types import SUPPORT_REFINED
@@ -43,8 +43,12 @@ def _call_sites(kernel, func: str) -> int:
   "kernel, func, sites",
   [
     (heightfield.stage_kernels(SUPPORT_REFINED).mpr, "mpr_refined", 1),
-    (heightfield.stage_kernels(SUPPORT_REFINED).mpr, "_job_mpr", 2),
-    (heightfield.stage_kernels(SUPPORT_REFINED).jobs, "_cell_jobs", 2),
+    (heightfield.stage_kernels(SUPPORT_REFINED).mpr, "_job_mpr", 1),
+    (heightfield.stage_kernels(SUPPORT_REFINED).jobs, "_cell_jobs", 1),
+    (heightfield.contacts_kernel(SUPPORT_REFINED, False), "_job_mpr", 1),
+    (heightfield.contacts_kernel(SUPPORT_REFINED, False), "_cell_jobs", 1),
+    (heightfield.contacts_kernel(SUPPORT_REFINED, True), "_job_mpr", 1),
+    (heightfield.contacts_kernel(SUPPORT_REFINED, True), "_cell_jobs", 1),
     (nonconvex.nonconvex_narrowphase(SUPPORT_REFINED), "_point", 1),
     (nonconvex.nonconvex_narrowphase(SUPPORT_REFINED), "_segment_min", 1),
   ],
@@ -58,9 +62,9 @@ def _package_kernels() -> list:
   """Every kernel of the package: the module-level ones, and each factory's for one key (the
   support-mode factories' for the default mode)."""
   kernels = []
-  for info in pkgutil.iter_modules(mjx_supportfield.__path__):
-    if info.name != "__main__":
-      module = importlib.import_module(f"mjx_supportfield.{info.name}")
+  for info in pkgutil.walk_packages(mjx_supportfield.__path__, "mjx_supportfield."):
+    if not info.name.endswith("__main__"):
+      module = importlib.import_module(info.name)
       kernels += [k for k in vars(module).values() if isinstance(k, wp.Kernel)]
   pair_test_key = (0, 1, 1, 1, 1, 0, 0, False, False)
   kernels += [
@@ -75,6 +79,7 @@ def _package_kernels() -> list:
   kernels += list(vars(deep_pairs.deep_kernels(SUPPORT_REFINED)).values())
   kernels += list(vars(multicontact_pass.pass_kernels(SUPPORT_REFINED)).values())
   kernels += list(vars(heightfield.stage_kernels(SUPPORT_REFINED)).values())
+  kernels += [heightfield.contacts_kernel(SUPPORT_REFINED, ccd) for ccd in (False, True)]
   return kernels
 
 

@@ -11,7 +11,7 @@ from conftest import ROOT
 from conftest import model_path
 from conftest import on_gpu
 
-from mjx_supportfield.cli import main
+from mjx_supportfield.tools.cli import main
 
 
 def _run(capsys, argv):
@@ -75,7 +75,7 @@ def test_compare_without_collision_geoms(tmp_path, capsys):
 
 def test_compare_check_fails_on_a_contact_off_its_shapes(tmp_path, capsys, monkeypatch):
   """--check exits 1 and names the rule a contact breaks (here a plugin contact moved 5 cm)."""
-  from mjx_supportfield import compare
+  from mjx_supportfield.tools import compare
 
   real = compare.warp_contacts
 
@@ -152,7 +152,7 @@ def test_bench_bad_numbers(capsys, argv, needle):
 def test_bench_on_the_cpu(tmp_path, capsys, monkeypatch):
   """The default world counts are the CPU's (small), the output says so, and the JSON names the
   device by its model, not "gpu": "cpu"."""
-  from mjx_supportfield import bench
+  from mjx_supportfield.tools import bench
 
   if on_gpu():
     pytest.skip("the CPU's defaults")
@@ -172,7 +172,7 @@ def test_settled_state_from_a_keyframe():
   the ground, their keyframe on it), from qpos0 otherwise."""
   import mujoco
 
-  from mjx_supportfield import bench
+  from mjx_supportfield.tools import bench
 
   mjm = mujoco.MjModel.from_xml_path(model_path(os.path.join("real", "quadruped_rough")))
   at_key, at_qpos0 = bench.settled_state(mjm, 0, keyframe=0), bench.settled_state(mjm, 0)
@@ -207,7 +207,7 @@ def test_plot_axes_start_at_zero_and_name_the_device(tmp_path):
   pytest.importorskip("matplotlib")
   import matplotlib.pyplot as plt
 
-  from mjx_supportfield import bench
+  from mjx_supportfield.tools import bench
 
   rows = [{"scene": "s", "nworld": n, "impl": impl, "stage": stage, "ms": ms}
           for n, ms in ((1024, 5.0), (4096, 6.0)) for impl in ("stock", "plugin") for stage in ("collision", "step")]
@@ -236,7 +236,7 @@ def test_version(capsys):
 
 def test_help_does_not_import_warp():
   """--help answers without importing Warp or MuJoCo Warp (seconds of imports)."""
-  code = ("import sys\nfrom mjx_supportfield.cli import main\ntry:\n  main(['--help'])\nexcept SystemExit:\n  pass\n"
+  code = ("import sys\nfrom mjx_supportfield.tools.cli import main\ntry:\n  main(['--help'])\nexcept SystemExit:\n  pass\n"
           "main_help = [m for m in ('warp', 'mujoco_warp', 'mujoco') if m in sys.modules]\n"
           "try:\n  main(['compare', '--help'])\nexcept SystemExit:\n  pass\n"
           "print('imported:', main_help + [m for m in ('warp', 'mujoco_warp') if m in sys.modules])")

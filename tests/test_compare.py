@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from conftest import model_path
 
-from mjx_supportfield import exact
-from mjx_supportfield.compare import check
-from mjx_supportfield.compare import compare_states
-from mjx_supportfield.compare import format_report
-from mjx_supportfield.compare import match
-from mjx_supportfield.compare import Contact
-from mjx_supportfield.compare import _fidelity_summary
 from mjx_supportfield.options import Options
+from mjx_supportfield.tools import exact
+from mjx_supportfield.tools.compare import Contact
+from mjx_supportfield.tools.compare import _fidelity_summary
+from mjx_supportfield.tools.compare import check
+from mjx_supportfield.tools.compare import compare_states
+from mjx_supportfield.tools.compare import format_report
+from mjx_supportfield.tools.compare import match
 
 MJW_MESHES = os.path.join(os.path.dirname(mujoco_warp.__file__), "test_data", "meshes")
 
@@ -275,7 +275,7 @@ def test_hull_distance_is_the_support_function_bound():
 
 def test_warp_contacts_reruns_when_the_buffer_overflows(monkeypatch):
   """Contacts that did not fit are not dropped: the collision reruns with room for them."""
-  from mjx_supportfield import compare
+  from mjx_supportfield.tools import compare
 
   mjm = mujoco.MjModel.from_xml_path(model_path("convex_pile.xml"))
   states = compare.sample_states(mjm, 0, 1)
@@ -294,7 +294,7 @@ def test_warp_contacts_reruns_when_the_buffer_overflows(monkeypatch):
 def test_nonconvex_pairs_are_labelled_and_not_counted():
   """MuJoCo C collides a non-convex mesh's hull: its pairs' deep points and normals are kept
   apart from the counts --check uses."""
-  from mjx_supportfield.compare import sample_states
+  from mjx_supportfield.tools.compare import sample_states
 
   mjm = mujoco.MjModel.from_xml_path(model_path("nonconvex.xml"))
   report = compare_states(mjm, sample_states(mjm, 100, 2), {"stock": None})
@@ -333,9 +333,9 @@ def test_inner_prism_walls_are_told_apart():
   """A heightfield contact of MuJoCo C's along a horizontal normal inside the grid is a side
   wall's between two prisms (the terrain's surface has no such normal); at the grid's outer edge
   the wall is the terrain's own, and a tilted normal is the surface's."""
-  from mjx_supportfield.compare import Reference
-  from mjx_supportfield.compare import _inner_wall
-  from mjx_supportfield.compare import _scene
+  from mjx_supportfield.tools.compare import Reference
+  from mjx_supportfield.tools.compare import _inner_wall
+  from mjx_supportfield.tools.compare import _scene
 
   mjm = mujoco.MjModel.from_xml_string("""<mujoco><asset><hfield name="h" nrow="11" ncol="11" size="1 1 .2 .1"/>
     </asset><worldbody><geom type="hfield" hfield="h" pos="1 2 0" euler="0 0 90"/>

@@ -21,7 +21,7 @@ from conftest import contacts
 from conftest import load
 from conftest import random_quat
 from conftest import set_qpos
-from mjx_supportfield import exact
+from mjx_supportfield.tools import exact
 
 REPRO = os.path.join(ROOT, "tests", "data", "repro")
 NORMAL_FAR_DEG = 5.0
@@ -179,7 +179,7 @@ def test_random_deep_pairs_no_worse_than_faces(k):
 def test_deep_pairs_beyond_the_queue_keep_mpr_answer(monkeypatch):
   """With no rows of the queue for any world, every deep answer is counted and keeps MPR's
   answer: every overlapping world still gets its contacts."""
-  from mjx_supportfield import deep_pairs
+  from mjx_supportfield.stages import deep_pairs
 
   monkeypatch.setattr(deep_pairs, "DEEP_PAIRS_PER_WORLD", 0)
   mjm, qpos = _example(0)
@@ -263,7 +263,7 @@ def test_deep_pair_rechecked_when_nearest_face_changes(monkeypatch):
   that face), so it agrees with the check's last verdict and the check is skipped; the pair is
   rechecked within DEEP_RECHECK_CALLS calls and then follows the nearer face. With the recheck
   pushed out of reach the answer stays on the first face, 6 mm deep instead of 2.54."""
-  from mjx_supportfield import narrowphase
+  from mjx_supportfield.stages import narrowphase
 
   first, second = np.array((1, 1, 1)) / np.sqrt(3), np.array((1, 1, -1)) / np.sqrt(3)
   period = narrowphase.DEEP_RECHECK_CALLS

@@ -14,7 +14,7 @@ from warp._src import context as wp_context
 import mjx_supportfield as sf
 from conftest import bitwise_repeatable
 from conftest import load
-from mjx_supportfield import first_use
+from mjx_supportfield.launch import first_use
 from test_install import contact_records
 
 LOAD = wp_context.Module.load  # Warp's own, before any watch
@@ -86,7 +86,7 @@ def test_first_collision_is_planned_and_counted(monkeypatch, caplog):
   assert [n.split("]")[0].strip() for n in notes if n.strip().startswith("[")][-count:] == \
     [f"[{i}/{count}" for i in range(1, count + 1)]
   assert f"{count} modules compiled in" in notes[-1]
-  assert any("mjx_supportfield.narrowphase" in n for n in notes)
+  assert any("mjx_supportfield.stages.narrowphase" in n for n in notes)
   # built side by side before the collision runs, each noted once built
   numbered = [n for n in notes if n.strip().startswith("[")][-count:]
   assert all(n.split("]")[1].split("(")[0].strip().endswith(" built") for n in numbered), numbered

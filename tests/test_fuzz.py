@@ -33,7 +33,7 @@ import pytest
 import mjx_supportfield as sf
 from conftest import contacts
 from conftest import load
-from mjx_supportfield import sdf
+from mjx_supportfield.geometry import sdf
 
 NPOSE = 8  # poses of B per example, one per world
 NEXAMPLE = 12  # examples per property test

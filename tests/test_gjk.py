@@ -1,4 +1,4 @@
-"""GJK distance and EPA penetration (mjx_supportfield.gjk) against closed forms at 1 mm, 1 m
+"""GJK distance and EPA penetration (mjx_supportfield.geometry.gjk) against closed forms at 1 mm, 1 m
 and 10 m in random rigid poses, and on random convex hulls against a brute-force penetration
 depth and against MPR.
 
@@ -21,14 +21,14 @@ from conftest import quat_mat
 from conftest import random_quat
 from conftest import unit
 from mjx_supportfield import Options
-from mjx_supportfield import gjk
-from mjx_supportfield import support_field
-from mjx_supportfield.compare import match
-from mjx_supportfield.compare import mujoco_contacts
-from mjx_supportfield.compare import sample_states
-from mjx_supportfield.compare import warp_contacts
-from mjx_supportfield.mpr import BEHIND
-from mjx_supportfield.mpr import mpr_funcs
+from mjx_supportfield.geometry import gjk
+from mjx_supportfield.geometry import support_field
+from mjx_supportfield.geometry.mpr import BEHIND
+from mjx_supportfield.geometry.mpr import mpr_funcs
+from mjx_supportfield.tools.compare import match
+from mjx_supportfield.tools.compare import mujoco_contacts
+from mjx_supportfield.tools.compare import sample_states
+from mjx_supportfield.tools.compare import warp_contacts
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape

@@ -17,7 +17,7 @@ import mjx_supportfield as sf
 from conftest import ROOT
 from conftest import contacts
 from conftest import load
-from mjx_supportfield import exact
+from mjx_supportfield.tools import exact
 
 REPRO = os.path.join(ROOT, "tests", "data", "repro")
 POINT_SLACK = 1e-3  # a contact point may lie this far beyond |dist| / 2 outside either geom

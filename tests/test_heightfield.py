@@ -19,7 +19,7 @@ from conftest import sorted_rows
 from conftest import world_contact_fields
 
 import mjx_supportfield as sf
-from mjx_supportfield import heightfield
+from mjx_supportfield.stages import heightfield
 
 sys.path.insert(0, MODELS)
 import make_terrain  # noqa: E402
@@ -439,9 +439,9 @@ def test_terrain_point_contacts_stay_on_the_terrain():
   contact where B's support tie ends (a capsule's centre), cells from the point and up to 28 mm
   above the terrain. Every heightfield contact lies within compare's bound of the terrain
   (|dist| / 2 + 1 mm), on the plugin's second (warm-started) call as in a rollout."""
-  from mjx_supportfield import compare
-  from mjx_supportfield import exact
-  from mjx_supportfield import real_scenes
+  from mjx_supportfield.tools import compare
+  from mjx_supportfield.tools import exact
+  from scenelib import real_scenes
 
   mjm = real_scenes.load("humanoid_rough")
   qpos = real_scenes.initial_data(mjm).qpos.copy()

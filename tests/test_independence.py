@@ -23,8 +23,8 @@ from conftest import on_gpu
 from conftest import set_qpos
 from conftest import sorted_rows
 from conftest import world_contact_fields
-from mjx_supportfield import deep_pairs
-from mjx_supportfield import narrowphase
+from mjx_supportfield.stages import deep_pairs
+from mjx_supportfield.stages import narrowphase
 
 _spec = importlib.util.spec_from_file_location("independence", os.path.join(ROOT, "benchmarks", "independence.py"))
 independence = importlib.util.module_from_spec(_spec)

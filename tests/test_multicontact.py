@@ -11,12 +11,12 @@ from conftest import load_mjmodel
 
 import mujoco
 import mjx_supportfield as sf
-from mjx_supportfield import faceclip
-from mjx_supportfield import multicontact
-from mjx_supportfield import multicontact_pass
-from mjx_supportfield import narrowphase
-from mjx_supportfield.mpr import BEHIND
-from mjx_supportfield.mpr import mpr_funcs
+from mjx_supportfield.geometry import faceclip
+from mjx_supportfield.geometry import multicontact
+from mjx_supportfield.geometry.mpr import BEHIND
+from mjx_supportfield.geometry.mpr import mpr_funcs
+from mjx_supportfield.stages import multicontact_pass
+from mjx_supportfield.stages import narrowphase
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 

@@ -1,4 +1,4 @@
-"""Newton's column of the benchmarks (mjx_supportfield/newton_bench.py): the setup that matches
+"""Newton's column of the benchmarks (mjx_supportfield/tools/newton_bench.py): the setup that matches
 MuJoCo (poses, pairs) and Newton's contacts on a resting scene; never timings. Skipped without
 the optional ``newton`` extra."""
 
@@ -12,8 +12,8 @@ import pytest
 
 from conftest import MODELS
 from conftest import on_gpu
-from mjx_supportfield import newton_bench
-from mjx_supportfield.cli import main
+from mjx_supportfield.tools import newton_bench
+from mjx_supportfield.tools.cli import main
 
 RESTING = os.path.join(MODELS, "resting.xml")
 

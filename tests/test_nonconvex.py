@@ -15,10 +15,10 @@ from conftest import contacts
 from conftest import load
 
 import mjx_supportfield as sf
-from mjx_supportfield import nonconvex
-from mjx_supportfield.sdf import MeshSdf
-from mjx_supportfield.sdf import build_mesh_sdf
-from mjx_supportfield.sdf import mesh_sdf_value
+from mjx_supportfield.geometry.sdf import MeshSdf
+from mjx_supportfield.geometry.sdf import build_mesh_sdf
+from mjx_supportfield.geometry.sdf import mesh_sdf_value
+from mjx_supportfield.stages import nonconvex
 
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
 wp.set_module_options({"enable_backward": False})

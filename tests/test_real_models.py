@@ -1,4 +1,4 @@
-"""The real-model scenes of models/real/ (mjx_supportfield.real_scenes; benchmarks/fidelity.py judges
+"""The real-model scenes of models/real/ (benchmarks/scenelib/real_scenes.py; benchmarks/fidelity.py judges
 the plugin on them): they load and compile in MuJoCo, their scripted MuJoCo C rollouts do what the
 scene is for, and the plugin installs on them."""
 
@@ -13,7 +13,7 @@ import pytest
 
 import mjx_supportfield as sf
 from conftest import MODELS
-from mjx_supportfield import real_scenes
+from scenelib import real_scenes
 
 REAL = os.path.join(MODELS, "real")
 SCENES = sorted(real_scenes.SCENES)

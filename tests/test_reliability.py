@@ -27,9 +27,9 @@ from conftest import contacts
 from conftest import load
 from conftest import load_mjmodel
 from conftest import mjc_contact_table
-from mjx_supportfield import contact_sort
-from mjx_supportfield.bench import settled_state
-from mjx_supportfield.cli import main as cli_main
+from mjx_supportfield.launch import contact_sort
+from mjx_supportfield.tools.bench import settled_state
+from mjx_supportfield.tools.cli import main as cli_main
 
 NWORLD = 3
 

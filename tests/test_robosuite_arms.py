@@ -13,7 +13,7 @@ import pytest
 from conftest import ROOT
 
 import mjx_supportfield as sf
-from mjx_supportfield import compare
+from mjx_supportfield.tools import compare
 
 _spec = importlib.util.spec_from_file_location("robosuite_arms", os.path.join(ROOT, "benchmarks", "robosuite_arms.py"))
 robosuite_arms = importlib.util.module_from_spec(_spec)

@@ -25,7 +25,7 @@ import mjx_supportfield as sf
 from conftest import ROOT
 from conftest import contacts
 from conftest import load
-from mjx_supportfield import exact
+from mjx_supportfield.tools import exact
 
 REPRO = os.path.join(ROOT, "tests", "data", "repro")
 COVER = 3e-3  # compare's radius: a deep point is found when a contact of its pair lies this near

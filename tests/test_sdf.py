@@ -8,7 +8,7 @@ from conftest import load
 
 import mujoco
 import mjx_supportfield as sf
-from mjx_supportfield import sdf as sdfmod
+from mjx_supportfield.geometry import sdf as sdfmod
 from mjx_supportfield.types import SUPPORT_REFINED
 from mjx_supportfield.types import MeshSupport
 

@@ -1,4 +1,4 @@
-"""The soak's checkpoints (mjx_supportfield.checkpoint, written and read by benchmarks/checkpoint.py): a
+"""The soak's checkpoints (benchmarks/scenelib/checkpoint.py, written and read by benchmarks/soak.py): a
 resumed soak continues the state exactly, a mismatched one is refused."""
 
 import os
@@ -12,8 +12,8 @@ import pytest
 from conftest import ROOT
 
 from mjx_supportfield import Options
-from mjx_supportfield import checkpoint
-from mjx_supportfield.install import install
+from scenelib import checkpoint
+from mjx_supportfield.driver import install
 
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "pile_32_128.xml")
 NSTEP = 10

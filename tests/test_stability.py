@@ -2,7 +2,7 @@
 
 Scenes: models/resting.xml (a box, a cylinder on its end and the convex hull convex1 on a plane,
 plus a mesh cube on a mesh cube, the pair that goes through MPR and multi-contact) and
-models/box_stack.xml (five stacked cubes). The measuring code is mjx_supportfield.stability's, with
+models/box_stack.xml (five stacked cubes). The measuring code is scenelib.stability's, with
 which benchmarks/stability.py prints the same figures for the plugin, stock MuJoCo Warp and MuJoCo C.
 
 Drift is the largest distance of a body from where it was at step SETTLE (200; the scenes
@@ -14,7 +14,7 @@ step earlier, over the same window. Failure messages quote MuJoCo C's figure on 
 import mujoco
 import pytest
 
-from mjx_supportfield import stability
+from scenelib import stability
 
 pytestmark = pytest.mark.slow  # whole trajectories
 

@@ -9,10 +9,10 @@ import pytest
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
-from mjx_supportfield import support
-from mjx_supportfield import support_field
-from mjx_supportfield.types import SUPPORT_MODE_ID
+from mjx_supportfield.geometry import support
+from mjx_supportfield.geometry import support_field
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
 from conftest import load_mjmodel
 
@@ -108,7 +108,7 @@ def mesh_supports(pile):
 def run_support_local(ms, gtype, size, dirs, mesh=-1, mode="refined"):
   out = wp.zeros(len(dirs), dtype=wp.vec3)
   wp.launch(
-    _support_kernels(SUPPORT_MODE_ID[mode])[0],
+    _support_kernels(SupportMode.of(mode))[0],
     dim=len(dirs),
     inputs=[int(gtype), wp.vec3(*size), mesh, ms, wp.array(dirs, dtype=wp.vec3)],
     outputs=[out],
@@ -244,7 +244,7 @@ def run_mesh_index(ms, mesh, mode, dirs):
   n = len(dirs)
   idx = wp.zeros(n, dtype=int)
   pts = wp.zeros(n, dtype=wp.vec3)
-  wp.launch(_support_kernels(SUPPORT_MODE_ID[mode])[1], dim=n, inputs=[ms, mesh, wp.array(dirs, dtype=wp.vec3)],
+  wp.launch(_support_kernels(SupportMode.of(mode))[1], dim=n, inputs=[ms, mesh, wp.array(dirs, dtype=wp.vec3)],
             outputs=[idx, pts])
   return idx.numpy(), pts.numpy().astype(np.float64)
 

@@ -11,10 +11,10 @@ from conftest import load
 import mujoco
 import mujoco_warp as mjw
 import mjx_supportfield as sf
-from mjx_supportfield import support
-from mjx_supportfield import support_field
-from mjx_supportfield.types import SUPPORT_MODE_ID
+from mjx_supportfield.geometry import support
+from mjx_supportfield.geometry import support_field
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
 
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
@@ -106,7 +106,7 @@ def _box_ties(size: wp.vec3, rtol: float, dirs: wp.array(dtype=wp.vec3), out: wp
 
 def _run(ms, mesh, mode, dirs):
   out = wp.zeros(len(dirs), dtype=wp.vec3)
-  wp.launch(_query(SUPPORT_MODE_ID[mode]), dim=len(dirs), inputs=[ms, mesh, wp.array(dirs.astype(np.float32), dtype=wp.vec3), out])
+  wp.launch(_query(SupportMode.of(mode)), dim=len(dirs), inputs=[ms, mesh, wp.array(dirs.astype(np.float32), dtype=wp.vec3), out])
   return out.numpy().astype(np.float64)
 
 
@@ -268,9 +268,9 @@ def test_hull_graph_layout_checked_for_every_reader():
   """The hull graph has one parser: a graph whose neighbour lists do not end where MuJoCo's
   layout says makes every reader (neighbours, face planes, SDF triangles, the yardstick's
   faces) raise instead of reading faces from the wrong entries."""
-  from mjx_supportfield import exact
-  from mjx_supportfield import sdf
-  from mjx_supportfield.hull_graph import hull_graph
+  from mjx_supportfield.tools import exact
+  from mjx_supportfield.geometry import sdf
+  from mjx_supportfield.geometry.hull_graph import hull_graph
 
   cube = " ".join(f"{x} {y} {z}" for x in (-1, 1) for y in (-1, 1) for z in (-1, 1))
   mjm = mujoco.MjModel.from_xml_string(

@@ -14,7 +14,7 @@ from conftest import load
 from conftest import set_qpos
 
 import mjx_supportfield as sf
-from mjx_supportfield import warmstart
+from mjx_supportfield.stages import warmstart
 
 # the test kernels are only run forward: no adjoint code to build (on CUDA it would take minutes)
 wp.set_module_options({"enable_backward": False})

@@ -7,7 +7,7 @@ make_quadruped_rough.py (deterministic; numpy and MuJoCo only).
 Each robot gets mjlab's drives (armature, stiffness and damping of a 10 Hz, damping-ratio-2
 position drive and effort limits, from mjlab 1.6.0's g1_constants.py) and mjlab's home pose, on
 the rough and the wave tiles, its lowest foot capsule 0.5 mm into the ground under it; the
-controls are scripted in mjx_supportfield/real_scenes.py.
+controls are scripted in benchmarks/scenelib/real_scenes.py.
 """
 
 import math

@@ -8,7 +8,7 @@ mjlab's rough-terrain tasks put the robots on a grid of tiles of several kinds, 
 box stairs; this is a small grid of the same kinds: random rough ground, a pyramid slope, waves
 (each a heightfield) and pyramid stairs (boxes on a flat heightfield), 2 m a tile. Each robot gets
 mjlab's drives and initial pose as in make_quadruped_terrain.py, its lowest foot 0.5 mm into the
-ground under it; the controls are scripted in mjx_supportfield/real_scenes.py.
+ground under it; the controls are scripted in benchmarks/scenelib/real_scenes.py.
 """
 
 import os

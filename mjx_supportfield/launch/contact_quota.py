@@ -1,0 +1,387 @@
+"""Contact rows owned per world (``Options.contacts_per_world``).
+
+MuJoCo Warp's writers append to ``d.contact`` through one atomic counter, ``d.nacon``, shared by
+every world: when the buffer overflows, whichever writers come first keep their contacts, so a
+world with a pile of contacts can take another world's rows. With a quota of N rows a world,
+world w writes rows [w*N, (w+1)*N) through its own counter instead: every writer gets views of
+the contact arrays that start at the world's first row (``world_rows``), so MuJoCo Warp's
+routines, which index from 0 and stop at the limit they are given, stay unchanged. A world past
+its quota loses its own contacts only. After the narrow phase the rows are packed to the front
+(world by world, each world's rows in the order they were written) and ``d.nacon`` counts them.
+
+Every writer picks its rows here, in one of two ways. A writer of single rows calls
+``write_row``: with N = 0 it writes the contact arrays themselves, else its world's views. A kernel
+that hands the rows to MuJoCo Warp's routines (they call write_contact themselves) is built per
+quota and takes its rows from ``rows(per_world)``, a choice made when the kernel is built: without a
+quota the routines get the arrays themselves, not fifteen views held in registers through them.
+
+This module owns the quota's kernels, its per-Data buffers (``make_buffers``) and its host entries
+(``start`` before the writers, ``pack`` after them), and names the contact fields the writers take.
+"""
+
+import dataclasses
+
+import warp as wp
+from mujoco_warp._src.collision_core import write_contact
+from mujoco_warp._src.types import OverflowType
+from mujoco_warp._src.types import vec5
+
+from mjx_supportfield.launch import contact_sort
+from mjx_supportfield.launch.contact_sort import ContactFields
+
+wp.set_module_options({"enable_backward": False})
+
+# bytes of one row of each contact field
+_INT = wp.constant(wp.types.type_size_in_bytes(wp.int32))
+_FLOAT = wp.constant(wp.types.type_size_in_bytes(wp.float32))
+_VEC2 = wp.constant(wp.types.type_size_in_bytes(wp.vec2))
+_VEC2I = wp.constant(wp.types.type_size_in_bytes(wp.vec2i))
+_VEC3 = wp.constant(wp.types.type_size_in_bytes(wp.vec3))
+_VEC5 = wp.constant(wp.types.type_size_in_bytes(vec5))
+_MAT33 = wp.constant(wp.types.type_size_in_bytes(wp.mat33))
+
+
+@wp.struct
+class ContactQuota:
+  """Where a world's contacts go: ``per_world`` rows each (0: the shared buffer)."""
+
+  per_world: int
+  world_ncon: wp.array(dtype=int)  # contacts each world found (those beyond per_world included)
+
+
+@wp.func
+def _offset(ptr: wp.uint64, row: int, row_bytes: int) -> wp.uint64:
+  """Address of row ``row`` of a contiguous array (in 64 bits: rows x bytes can pass 2**31)."""
+  return ptr + wp.uint64(row) * wp.uint64(row_bytes)
+
+
+@wp.func
+def world_rows(
+  quota: ContactQuota,
+  worldid: int,
+  naconmax_in: int,
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """The contact rows world ``worldid`` may write, as MuJoCo Warp's write_contact takes them: the
+  row limit, the 15 contact arrays and the counter. With a quota, views of the world's rows and
+  its own counter; without, the whole arrays and ``d.nacon``."""
+  start = int(0)
+  n = naconmax_in
+  counter = nacon_out.ptr
+  if quota.per_world > 0:
+    start = worldid * quota.per_world
+    n = quota.per_world
+    counter = _offset(quota.world_ncon.ptr, worldid, _INT)
+  k = contact_efc_address_out.shape[1]
+  return (
+    n,
+    wp.array(ptr=_offset(contact_dist_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contact_pos_out.ptr, start, _VEC3), shape=(n,), dtype=wp.vec3),
+    wp.array(ptr=_offset(contact_frame_out.ptr, start, _MAT33), shape=(n,), dtype=wp.mat33),
+    wp.array(ptr=_offset(contact_includemargin_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contact_friction_out.ptr, start, _VEC5), shape=(n,), dtype=vec5),
+    wp.array(ptr=_offset(contact_solref_out.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
+    wp.array(ptr=_offset(contact_solreffriction_out.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
+    wp.array(ptr=_offset(contact_solimp_out.ptr, start, _VEC5), shape=(n,), dtype=vec5),
+    wp.array(ptr=_offset(contact_dim_out.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contact_geom_out.ptr, start, _VEC2I), shape=(n,), dtype=wp.vec2i),
+    wp.array(ptr=_offset(contact_efc_address_out.ptr, start, k * _INT), shape=(n, k), dtype=int),
+    wp.array(ptr=_offset(contact_worldid_out.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contact_type_out.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contact_geomcollisionid_out.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contact_adhesion_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=counter, shape=(1,), dtype=int),
+  )
+
+
+@wp.func
+def shared_rows(
+  quota: ContactQuota,
+  worldid: int,
+  naconmax_in: int,
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+):
+  """world_rows without a quota: the row limit, the contact arrays themselves and ``d.nacon``."""
+  return (
+    naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out,
+    contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out,
+    contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out,
+    nacon_out,
+  )
+
+
+def rows(per_world: bool):
+  """The rows of a kernel built per quota (call it with ``wp.static``): world_rows when
+  Options.contacts_per_world > 0, else shared_rows, the contact arrays themselves."""
+  return world_rows if per_world else shared_rows
+
+
+@wp.func
+def write_row(
+  quota: ContactQuota,
+  worldid: int,
+  naconmax_in: int,
+  id_: int,
+  dist: float,
+  pos: wp.vec3,
+  frame: wp.mat33,
+  margin: float,
+  gap: float,
+  condim: int,
+  friction: vec5,
+  solref: wp.vec2,
+  solreffriction: wp.vec2,
+  solimp: vec5,
+  adhesion: float,
+  geoms: wp.vec2i,
+  pairid: wp.vec2i,
+  contact_dist_out: wp.array(dtype=float),
+  contact_pos_out: wp.array(dtype=wp.vec3),
+  contact_frame_out: wp.array(dtype=wp.mat33),
+  contact_includemargin_out: wp.array(dtype=float),
+  contact_friction_out: wp.array(dtype=vec5),
+  contact_solref_out: wp.array(dtype=wp.vec2),
+  contact_solreffriction_out: wp.array(dtype=wp.vec2),
+  contact_solimp_out: wp.array(dtype=vec5),
+  contact_dim_out: wp.array(dtype=int),
+  contact_geom_out: wp.array(dtype=wp.vec2i),
+  contact_efc_address_out: wp.array2d(dtype=int),
+  contact_worldid_out: wp.array(dtype=int),
+  contact_type_out: wp.array(dtype=int),
+  contact_geomcollisionid_out: wp.array(dtype=int),
+  contact_adhesion_out: wp.array(dtype=float),
+  nacon_out: wp.array(dtype=int),
+) -> int:
+  """MuJoCo Warp's write_contact of one contact of world ``worldid`` into the rows it may write:
+  without a quota the contact arrays themselves (no views made), else its world's rows."""
+  if quota.per_world == 0:
+    return write_contact(
+      naconmax_in, id_, dist, pos, frame, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion,
+      geoms, pairid, worldid, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+      contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+      contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+      contact_adhesion_out, nacon_out,
+    )
+  (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
+   rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
+   rows_nacon) = world_rows(
+    quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
+    contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
+    contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
+    contact_adhesion_out, nacon_out,
+  )
+  return write_contact(
+    limit, id_, dist, pos, frame, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion, geoms,
+    pairid, worldid, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref,
+    rows_solreffriction, rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type,
+    rows_geomcollisionid, rows_adhesion, rows_nacon,
+  )
+
+
+# --- per Data --------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class QuotaBuffers:
+  """What packing the world rows needs (made with the Data's collision state)."""
+
+  quota: ContactQuota
+  world_kept: wp.array  # (nworld) contacts each world keeps: min(found, per_world)
+  world_start: wp.array  # (nworld) their first row once packed
+  stock_dropped: wp.array  # (1) contacts MuJoCo Warp's own writers found beyond naconmax
+  nwarned: wp.array  # (1) overflow warnings printed this step
+
+
+def make_buffers(nworld: int, per_world: int) -> QuotaBuffers:
+  """Buffers on the current device; the per-world ones are placeholders when ``per_world`` is 0."""
+  n = nworld if per_world > 0 else 1
+  quota = ContactQuota()
+  quota.per_world = per_world
+  quota.world_ncon = wp.zeros(n, dtype=int)
+  return QuotaBuffers(quota=quota, world_kept=wp.zeros(n, dtype=int), world_start=wp.zeros(n, dtype=int),
+                      stock_dropped=wp.zeros(1, dtype=int), nwarned=wp.zeros(1, dtype=int))
+
+
+# the contact fields the plugin's writers take (contact_outputs, in that order)
+WRITTEN_CONTACT_FIELDS = (
+  "dist", "pos", "frame", "includemargin", "friction", "solref", "solreffriction", "solimp", "dim", "geom",
+  "efc_address", "worldid", "type", "geomcollisionid", "adhesion",
+)  # fmt: skip
+
+
+def contact_outputs(d) -> list:
+  """The contact arrays and counter the plugin's writers take, in their kernels' order."""
+  return [getattr(d.contact, f) for f in WRITTEN_CONTACT_FIELDS] + [d.nacon]
+
+
+def check_fits(per_world: int, nworld: int, naconmax: int) -> None:
+  """nworld x per_world rows must fit in naconmax."""
+  if per_world * nworld > naconmax:
+    raise ValueError(
+      f"mjx_supportfield: Options.contacts_per_world = {per_world} gives {nworld} worlds {per_world * nworld} contact"
+      f" rows, but this Data has naconmax = {naconmax}; lower contacts_per_world to at most {naconmax // nworld} or"
+      " make the Data with a larger naconmax"
+    )
+
+
+@wp.kernel
+def start_worlds(
+  per_world: int,
+  # Out:
+  nacon: wp.array(dtype=int),
+  world_ncon: wp.array(dtype=int),
+  stock_dropped: wp.array(dtype=int),
+  nwarned: wp.array(dtype=int),
+):
+  """Zeroes the world counters; MuJoCo Warp's own writers append after the world rows."""
+  worldid = wp.tid()
+  world_ncon[worldid] = 0
+  if worldid == 0:
+    nacon[0] = world_ncon.shape[0] * per_world
+    stock_dropped[0] = 0
+    nwarned[0] = 0
+
+
+@wp.kernel
+def _kept_per_world(
+  per_world: int,
+  naconmax: int,
+  warn: bool,
+  nacon: wp.array(dtype=int),
+  world_ncon: wp.array(dtype=int),
+  # Out:
+  world_kept: wp.array(dtype=int),
+  stock_dropped: wp.array(dtype=int),
+  overflow: wp.array(dtype=int),
+  nwarned: wp.array(dtype=int),
+):
+  """Each world keeps min(found, per_world) contacts; a world past its quota is flagged. Contacts
+  of MuJoCo Warp's own writers beyond naconmax are counted and flag every world, as MuJoCo Warp
+  flags an overflow of the shared buffer."""
+  worldid = wp.tid()
+  found = world_ncon[worldid]
+  world_kept[worldid] = wp.min(found, per_world)
+  stock = wp.max(nacon[0] - naconmax, 0)
+  if worldid == 0:
+    stock_dropped[0] = stock
+  if found <= per_world and stock == 0:
+    return
+  overflow[worldid] = overflow[worldid] | int(OverflowType.NARROWPHASE)
+  if warn:
+    if wp.atomic_add(nwarned, 0, 1) == 0:
+      if found > per_world:
+        wp.printf(
+          "mjx_supportfield: narrowphase overflow - %d contacts in world %d; raise Options.contacts_per_world"
+          " beyond %d\n"
+          "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.NARROWPHASE (or = 0 for all)\n",
+          found,
+          worldid,
+          per_world,
+        )
+      else:
+        wp.printf(
+          "mjx_supportfield: narrowphase overflow - MuJoCo Warp's own routines found %d contacts beyond naconmax %d"
+          " (the rows after nworld x Options.contacts_per_world)\n"
+          "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.NARROWPHASE (or = 0 for all)\n",
+          stock,
+          naconmax,
+        )
+
+
+@wp.kernel
+def _pack(
+  per_world: int,
+  naconmax: int,
+  nacon: wp.array(dtype=int),
+  world_kept: wp.array(dtype=int),
+  world_start: wp.array(dtype=int),
+  src: ContactFields,
+  # Out:
+  dst: ContactFields,
+  efc_address: wp.array2d(dtype=int),
+):
+  """Row i of the copy to its packed place: the world rows that hold a contact, then the shared
+  rest. A packed row need not have been written this step: its constraint rows are cleared, and
+  a geom contact's flex fields too (a flex contact may have sat there)."""
+  i = wp.tid()
+  if i >= wp.min(nacon[0], naconmax):
+    return
+  nworld = world_kept.shape[0]
+  nrow = nworld * per_world
+  j = world_start[nworld - 1] + world_kept[nworld - 1] + i - nrow
+  if i < nrow:
+    worldid = i // per_world
+    slot = i - worldid * per_world
+    if slot >= world_kept[worldid]:
+      return
+    j = world_start[worldid] + slot
+  contact_sort._move(src, i, dst, j)
+  if i < nrow and dst.flex.shape[0] > 0:
+    dst.flex[j] = wp.vec2i(-1)
+    dst.elem[j] = wp.vec2i(-1)
+    dst.vert[j] = wp.vec2i(-1)
+  for k in range(efc_address.shape[1]):
+    efc_address[j, k] = -1
+
+
+@wp.kernel
+def _packed_count(
+  per_world: int,
+  naconmax: int,
+  world_kept: wp.array(dtype=int),
+  world_start: wp.array(dtype=int),
+  # In and out:
+  nacon: wp.array(dtype=int),
+):
+  nworld = world_kept.shape[0]
+  nacon[0] = world_start[nworld - 1] + world_kept[nworld - 1] + wp.min(nacon[0], naconmax) - nworld * per_world
+
+
+def start(d, buf: QuotaBuffers, per_world: int) -> None:
+  """Empties each world's rows before the step's writers run (per_world > 0)."""
+  wp.launch(start_worlds, dim=d.nworld, inputs=[per_world],
+            outputs=[d.nacon, buf.quota.world_ncon, buf.stock_dropped, buf.nwarned])
+
+
+def pack(d, buf: QuotaBuffers, fields: tuple, warn: bool) -> None:
+  """Packs the world rows (and the shared rest) to the front of d.contact; d.nacon counts them.
+  ``fields``: contact_sort.fields_and_copy(d), the scratch the rows move through."""
+  n, per_world = d.naconmax, buf.quota.per_world
+  contact, copy = fields
+  wp.launch(_kept_per_world, dim=d.nworld, inputs=[per_world, n, warn, d.nacon, buf.quota.world_ncon],
+            outputs=[buf.world_kept, buf.stock_dropped, d.overflow, buf.nwarned])
+  wp.utils.array_scan(buf.world_kept, buf.world_start, inclusive=False)
+  wp.launch(contact_sort._copy, dim=n, inputs=[n, d.nacon, contact], outputs=[copy])
+  wp.launch(_pack, dim=n, inputs=[per_world, n, d.nacon, buf.world_kept, buf.world_start, copy],
+            outputs=[contact, d.contact.efc_address])
+  wp.launch(_packed_count, dim=1, inputs=[per_world, n, buf.world_kept, buf.world_start], outputs=[d.nacon])

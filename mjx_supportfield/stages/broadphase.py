@@ -1,0 +1,604 @@
+"""Broad phase: the pairs of boxes that overlap, after MuJoCo's pair filters, dealt out to
+the narrow-phase kernels' queues.
+
+Two ways, chosen at install (``Options.broadphase``):
+
+- nxn, for models with few pairs after the static filters (``m.nxn_geom_pair_filtered``):
+  one thread per (world, pair) tests it and lists it; one launch.
+- Sweep-and-prune, which scales with the geoms, not their pairs: each world keeps the order of
+  its geoms along one axis from the previous step; insertion sort (one thread per world)
+  restores it in near-linear time when little moved. The sweep runs one thread per (world,
+  sorted box): it walks the boxes that start inside its own, tests the other two axes, then
+  applies MuJoCo's pair filters (``m.nxn_pairid``: contype / conaffinity, parent-child, weld,
+  exclude). Explicit ``<pair>``s and pairs watched by collision sensors are not swept: a small
+  kernel tests them with their own margins, as MuJoCo does. Pairs land in per-world slots
+  and are then compacted into one list, worlds back to back.
+
+Both apply the sleep rules and MuJoCo Warp's own bounding filters (plane, sphere, AABB, OBB
+per ``m.opt.broadphase_filter``).
+
+This module owns the broad phase's kernels, its per-Data buffers (``Buffers``, ``make_buffers``)
+and its host entry, ``launch``: the geoms' boxes (aabb.py's kernel), then nxn or the sweep, then
+the compacted pair list and the narrow-phase queues.
+"""
+
+import dataclasses
+import functools
+
+import warp as wp
+from mujoco_warp._src.collision_core import CollisionContext
+from mujoco_warp._src.collision_driver import _broadphase_filter
+from mujoco_warp._src.math import upper_tri_index
+from mujoco_warp._src.types import EnableBit
+from mujoco_warp._src.types import OverflowType
+from mujoco_warp._src.types import SleepState
+
+from mjx_supportfield.launch import first_use
+from mjx_supportfield.stages.aabb import update_aabbs
+from mjx_supportfield.stages.routing import PairQueues
+from mjx_supportfield.stages.routing import queue_pair
+
+# the factories' module="unique" kernels take Warp's global options, not this module's:
+# they turn adjoints off themselves
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.struct
+class PairOutputs:
+  """Where the broad phase writes: the plugin's pair list (through per-world slots with
+  sweep-and-prune, directly with nxn) and the list handed to stock MuJoCo Warp."""
+
+  world_npair: wp.array(dtype=int)  # pairs found per world (kept or not)
+  slot_pair: wp.array(dtype=wp.vec2i)  # world * max_pairs + k
+  slot_pairid: wp.array(dtype=wp.vec2i)
+  ndropped: wp.array(dtype=int)  # per world: pairs beyond max_pairs
+  nwarned: wp.array(dtype=int)  # overflow warnings printed this step (one is enough)
+  overflow: wp.array(dtype=int)  # d.overflow
+  ncollision: wp.array(dtype=int)  # d.ncollision: pairs handed to stock MuJoCo Warp
+  stock_pair: wp.array(dtype=wp.vec2i)
+  stock_pairid: wp.array(dtype=wp.vec2i)
+  stock_worldid: wp.array(dtype=int)
+  npair: wp.array(dtype=int)  # the pair list the narrow phase walks
+  pair: wp.array(dtype=wp.vec2i)
+  pairid: wp.array(dtype=wp.vec2i)
+  pair_worldid: wp.array(dtype=int)
+
+
+@wp.func
+def _asleep_pair(s1: int, s2: int) -> bool:
+  """MuJoCo Warp's rule: a pair is skipped when both are asleep, or one asleep and one static."""
+  return (
+    (s1 == SleepState.ASLEEP and s2 == SleepState.ASLEEP)
+    or (s1 == SleepState.ASLEEP and s2 == SleepState.STATIC)
+    or (s2 == SleepState.ASLEEP and s1 == SleepState.STATIC)
+  )
+
+
+@wp.func
+def _overlap(lo1: wp.vec3, hi1: wp.vec3, lo2: wp.vec3, hi2: wp.vec3) -> bool:
+  return (
+    lo1[0] <= hi2[0] and lo2[0] <= hi1[0] and lo1[1] <= hi2[1] and lo2[1] <= hi1[1] and lo1[2] <= hi2[2] and lo2[2] <= hi1[2]
+  )
+
+
+@wp.func
+def _empty(aabb_lo: wp.array2d(dtype=wp.vec3), aabb_hi: wp.array2d(dtype=wp.vec3), worldid: int, g: int) -> bool:
+  """An empty box marks an absent mesh or a non-finite pose (aabb.update_aabbs)."""
+  return aabb_lo[worldid, g][0] > aabb_hi[worldid, g][0]
+
+
+@wp.func
+def _ordered(g1: int, g2: int, type1: int, type2: int) -> wp.vec2i:
+  """The pair with the lower geom type first, as the narrow-phase routines expect."""
+  if type1 > type2:
+    return wp.vec2i(g2, g1)
+  return wp.vec2i(g1, g2)
+
+
+@wp.func
+def _emit_stock(pair: wp.vec2i, pairid: wp.vec2i, worldid: int, naconmax: int, out: PairOutputs):
+  """Appends a pair to the list handed to stock MuJoCo Warp, which flags ncollision > naconmax
+  itself (d.overflow, BROADPHASE)."""
+  cid = wp.atomic_add(out.ncollision, 0, 1)
+  if cid < naconmax:
+    out.stock_pair[cid] = pair
+    out.stock_pairid[cid] = pairid
+    out.stock_worldid[cid] = worldid
+
+
+@wp.func
+def _claim(worldid: int, max_pairs: int, warn: bool, out: PairOutputs) -> int:
+  """The pair's place within its world's budget, or -1 past max_pairs (counted and flagged)."""
+  k = wp.atomic_add(out.world_npair, worldid, 1)
+  if k < max_pairs:
+    return k
+  wp.atomic_add(out.ndropped, worldid, 1)
+  wp.atomic_or(out.overflow, worldid, int(OverflowType.BROADPHASE))
+  if warn:
+    if wp.atomic_add(out.nwarned, 0, 1) == 0:
+      wp.printf(
+        "mjx_supportfield: broadphase overflow - more than %d pairs in world %d; raise Options.max_collision_pairs\n"
+        "To disable the print warning: m.opt.warn_overflow &= ~mjw.OverflowType.BROADPHASE (or = 0 for all)\n",
+        max_pairs,
+        worldid,
+      )
+  return -1
+
+
+@wp.func
+def _emit(
+  g1: int,
+  g2: int,
+  type1: int,
+  type2: int,
+  pairid: wp.vec2i,
+  worldid: int,
+  to_stock: bool,
+  max_pairs: int,
+  naconmax: int,
+  warn: bool,
+  # Out:
+  out: PairOutputs,
+):
+  """Sweep-and-prune: appends a pair to its world's slots (compact_pairs lists them) or to the
+  list handed to stock MuJoCo Warp."""
+  pair = _ordered(g1, g2, type1, type2)
+  if to_stock:
+    _emit_stock(pair, pairid, worldid, naconmax, out)
+    return
+  k = _claim(worldid, max_pairs, warn, out)
+  if k < 0:
+    return
+  # per-world slots: compact_pairs later lays the worlds out back to back, in world order,
+  # so narrow-phase warps see pairs of one world (similar shapes) together
+  slot = worldid * max_pairs + k
+  out.slot_pair[slot] = pair
+  out.slot_pairid[slot] = pairid
+
+
+@functools.lru_cache(maxsize=None)
+def _pair_test(
+  broadphase_filter: int,
+  ngeom_aabb: int,
+  ngeom_rbound: int,
+  ngeom_margin: int,
+  ngeom_gap: int,
+  npair_margin: int,
+  npair_gap: int,
+  enable_sleep: bool,
+  incremental: bool,
+):
+  """Sleep rules and bounding filters shared by the sweep and the explicit-pair kernel."""
+  bound_filter = _broadphase_filter(broadphase_filter, ngeom_aabb, ngeom_rbound, ngeom_margin, ngeom_gap, npair_margin, npair_gap)
+
+  @wp.func
+  def pair_test(
+    geom_bodyid: wp.array(dtype=int),
+    geom_aabb: wp.array3d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    body_awake_in: wp.array2d(dtype=int),
+    awake_prev_in: wp.array2d(dtype=int),
+    g1: int,
+    g2: int,
+    pairid: wp.vec2i,
+    worldid: int,
+  ) -> bool:
+    if wp.static(enable_sleep):
+      b1 = geom_bodyid[g1]
+      b2 = geom_bodyid[g2]
+      if _asleep_pair(body_awake_in[worldid, b1], body_awake_in[worldid, b2]):
+        return False
+      if wp.static(incremental):
+        # second (incremental) pass: only pairs the first pass skipped because they slept
+        if not _asleep_pair(awake_prev_in[worldid, b1], awake_prev_in[worldid, b2]):
+          return False
+    if pairid[1] >= 0:
+      return True  # collision sensors see every pair they watch
+    return wp.static(bound_filter)(
+      geom_aabb, geom_rbound, geom_margin, geom_gap, pair_margin, pair_gap, geom_xpos_in, geom_xmat_in, g1, g2, pairid[0], worldid
+    )
+
+  return pair_test
+
+
+@wp.kernel
+def sort_endpoints(
+  ngeom: int,
+  axis: int,
+  aabb_lo: wp.array2d(dtype=wp.vec3),
+  sap_init: wp.array(dtype=int),
+  order: wp.array2d(dtype=int),
+):
+  """Per world: insertion sort of the geoms by lower bound, from last step's order."""
+  worldid = wp.tid()
+  if sap_init[worldid] == 0:
+    for k in range(ngeom):
+      order[worldid, k] = k
+    sap_init[worldid] = 1
+  for k in range(1, ngeom):
+    g = order[worldid, k]
+    key = aabb_lo[worldid, g][axis]
+    j = k
+    while j > 0 and aabb_lo[worldid, order[worldid, j - 1]][axis] > key:
+      order[worldid, j] = order[worldid, j - 1]
+      j -= 1
+    order[worldid, j] = g
+
+
+@functools.lru_cache(maxsize=None)
+def sweep_kernel(static_key: tuple, axis: int):
+  """Sweep from each sorted box over the boxes that start inside it; one thread per (world, box).
+
+  static_key = the _pair_test parameters.
+  """
+  pair_test = _pair_test(*static_key)
+
+  @wp.kernel(module="unique", enable_backward=False)
+  def sweep(
+    # Model:
+    ngeom: int,
+    geom_type: wp.array(dtype=int),
+    geom_bodyid: wp.array(dtype=int),
+    geom_aabb: wp.array3d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    nxn_pairid: wp.array(dtype=wp.vec2i),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    body_awake_in: wp.array2d(dtype=int),
+    naconmax_in: int,
+    # In:
+    awake_prev_in: wp.array2d(dtype=int),
+    geom_stock: wp.array(dtype=int),
+    aabb_lo: wp.array2d(dtype=wp.vec3),
+    aabb_hi: wp.array2d(dtype=wp.vec3),
+    max_pairs: int,
+    warn: bool,
+    order: wp.array2d(dtype=int),
+    # Out:
+    out: PairOutputs,
+  ):
+    worldid, a = wp.tid()
+    ga = order[worldid, a]
+    lo_a = aabb_lo[worldid, ga]
+    hi_a = aabb_hi[worldid, ga]
+    if lo_a[axis] > hi_a[axis]:
+      return  # empty box: absent mesh or non-finite pose
+    for b in range(a + 1, ngeom):
+      gb = order[worldid, b]
+      lo_b = aabb_lo[worldid, gb]
+      if lo_b[axis] > hi_a[axis]:
+        break  # every later box starts beyond this one
+      hi_b = aabb_hi[worldid, gb]
+      if lo_b[axis] > hi_b[axis] or not _overlap(lo_a, hi_a, lo_b, hi_b):
+        continue
+      g1 = wp.min(ga, gb)
+      g2 = wp.max(ga, gb)
+      pairid = nxn_pairid[upper_tri_index(ngeom, g1, g2)]
+      if pairid[0] == -2 or pairid[0] >= 0 or pairid[1] >= 0:
+        continue  # filtered out, or an explicit/sensor pair (tested by listed_pairs)
+      if not pair_test(
+        geom_bodyid,
+        geom_aabb,
+        geom_rbound,
+        geom_margin,
+        geom_gap,
+        pair_margin,
+        pair_gap,
+        geom_xpos_in,
+        geom_xmat_in,
+        body_awake_in,
+        awake_prev_in,
+        g1,
+        g2,
+        pairid,
+        worldid,
+      ):
+        continue
+      _emit(
+        g1,
+        g2,
+        geom_type[g1],
+        geom_type[g2],
+        pairid,
+        worldid,
+        geom_stock[g1] != 0 or geom_stock[g2] != 0,
+        max_pairs,
+        naconmax_in,
+        warn,
+        out,
+      )
+
+  return sweep
+
+
+@wp.kernel
+def clamp_counts(max_pairs: int, world_npair: wp.array(dtype=int), world_count_out: wp.array(dtype=int)):
+  """Pairs kept per world (the counter also counts the dropped ones)."""
+  worldid = wp.tid()
+  world_count_out[worldid] = wp.min(world_npair[worldid], max_pairs)
+
+
+@functools.lru_cache(maxsize=None)
+def listed_pairs_kernel(static_key: tuple, direct: bool):
+  """Pairs given as a list, one thread per (world, pair): boxes (not for explicit ``<pair>``s and
+  sensor pairs, which bring their own margins to the bounding filter), sleep rules and bounding
+  filters as in the sweep.
+
+  ``direct`` (nxn): the list is every pair MuJoCo's static filters keep
+  (``m.nxn_geom_pair_filtered``), and a kept pair goes straight to the pair list and its
+  narrow-phase queue; for a model with few pairs this one launch replaces the sort, the sweep,
+  the count, the scan and the compaction. Otherwise the list holds the explicit and sensor pairs
+  the sweep leaves out, and they go to the per-world slots, as the sweep's do.
+
+  static_key = the _pair_test parameters.
+  """
+  pair_test = _pair_test(*static_key)
+
+  @wp.kernel(module="unique", enable_backward=False)
+  def listed_pairs(
+    # Model:
+    geom_type: wp.array(dtype=int),
+    geom_bodyid: wp.array(dtype=int),
+    geom_aabb: wp.array3d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_margin: wp.array2d(dtype=float),
+    geom_gap: wp.array2d(dtype=float),
+    pair_margin: wp.array2d(dtype=float),
+    pair_gap: wp.array2d(dtype=float),
+    # Data in:
+    geom_xpos_in: wp.array2d(dtype=wp.vec3),
+    geom_xmat_in: wp.array2d(dtype=wp.mat33),
+    body_awake_in: wp.array2d(dtype=int),
+    naconmax_in: int,
+    # In:
+    awake_prev_in: wp.array2d(dtype=int),
+    geom_stock: wp.array(dtype=int),
+    aabb_lo: wp.array2d(dtype=wp.vec3),
+    aabb_hi: wp.array2d(dtype=wp.vec3),
+    listed_pair: wp.array(dtype=wp.vec2i),
+    listed_pairid: wp.array(dtype=wp.vec2i),
+    max_pairs: int,
+    warn: bool,
+    # Out:
+    out: PairOutputs,
+    queues: PairQueues,
+  ):
+    worldid, k = wp.tid()
+    geoms = listed_pair[k]
+    g1 = geoms[0]
+    g2 = geoms[1]
+    if _empty(aabb_lo, aabb_hi, worldid, g1) or _empty(aabb_lo, aabb_hi, worldid, g2):
+      return
+    pairid = listed_pairid[k]
+    swept = pairid[0] < 0 and pairid[1] < 0
+    if swept and not _overlap(aabb_lo[worldid, g1], aabb_hi[worldid, g1], aabb_lo[worldid, g2], aabb_hi[worldid, g2]):
+      return
+    if not pair_test(
+      geom_bodyid,
+      geom_aabb,
+      geom_rbound,
+      geom_margin,
+      geom_gap,
+      pair_margin,
+      pair_gap,
+      geom_xpos_in,
+      geom_xmat_in,
+      body_awake_in,
+      awake_prev_in,
+      g1,
+      g2,
+      pairid,
+      worldid,
+    ):
+      return
+    to_stock = geom_stock[g1] != 0 or geom_stock[g2] != 0 or pairid[1] >= 0
+    if not wp.static(direct):
+      _emit(g1, g2, geom_type[g1], geom_type[g2], pairid, worldid, to_stock, max_pairs, naconmax_in, warn, out)
+      return
+    pair = _ordered(g1, g2, geom_type[g1], geom_type[g2])
+    if to_stock:
+      _emit_stock(pair, pairid, worldid, naconmax_in, out)
+      return
+    if _claim(worldid, max_pairs, warn, out) < 0:
+      return
+    cid = wp.atomic_add(out.npair, 0, 1)
+    out.pair[cid] = pair
+    out.pairid[cid] = pairid
+    out.pair_worldid[cid] = worldid
+    queue_pair(geom_type, pair, cid, queues)
+
+  return listed_pairs
+
+
+@wp.kernel
+def compact_pairs(
+  # Model:
+  geom_type: wp.array(dtype=int),
+  # In:
+  max_pairs: int,
+  world_count: wp.array(dtype=int),
+  world_start: wp.array(dtype=int),
+  # Out:
+  out: PairOutputs,
+  queues: PairQueues,
+):
+  """Copies each world's slots to its range of the pair list (world_start: exclusive scan) and
+  queues each pair for its narrow-phase kernel."""
+  worldid, k = wp.tid()
+  n = world_count[worldid]
+  if k == 0 and worldid == world_count.shape[0] - 1:
+    out.npair[0] = world_start[worldid] + n
+  if k >= n:
+    return
+  src = worldid * max_pairs + k
+  cid = world_start[worldid] + k
+  pair = out.slot_pair[src]
+  pairid = out.slot_pairid[src]
+  out.pair[cid] = pair
+  out.pairid[cid] = pairid
+  out.pair_worldid[cid] = worldid
+  queue_pair(geom_type, pair, cid, queues)
+
+
+@dataclasses.dataclass
+class Buffers:
+  """The broad phase's per-Data buffers: sizes depend on nworld, which install cannot know."""
+
+  aabb_lo: wp.array
+  aabb_hi: wp.array
+  nonfinite: wp.array  # per world: 1 if a geom pose held NaN/inf this step
+  sap_init: wp.array
+  order: wp.array
+  world_npair: wp.array
+  npair: wp.array
+  ndropped: wp.array
+  nwarned: wp.array
+  slot_pair: wp.array  # per-world slots written by the sweep (a placeholder with nxn)
+  slot_pairid: wp.array
+  world_count: wp.array
+  world_start: wp.array
+  pair: wp.array  # the compacted pair list, worlds back to back
+  pairid: wp.array
+  pair_worldid: wp.array
+  stock_ctx: CollisionContext  # the pairs left to MuJoCo Warp's own narrow phase
+  capacity: int
+  outputs: PairOutputs  # the arrays above (and d's overflow, ncollision) for the kernels
+
+
+def make_buffers(c, d) -> Buffers:
+  """The broad phase's buffers for Data ``d`` of the model Collider ``c`` was installed on."""
+  nworld = d.nworld
+  capacity = nworld * c.max_pairs
+  # the sweep's per-world slots; nxn lists pairs directly, so it needs none (two large arrays saved)
+  nslot = 1 if c.nxn else capacity
+  b = Buffers(
+    aabb_lo=wp.zeros((nworld, c.ngeom), dtype=wp.vec3),
+    aabb_hi=wp.zeros((nworld, c.ngeom), dtype=wp.vec3),
+    nonfinite=wp.zeros(nworld, dtype=int),
+    sap_init=wp.zeros(nworld, dtype=int),
+    order=wp.zeros((nworld, max(c.ngeom, 1)), dtype=int),
+    world_npair=wp.zeros(nworld, dtype=int),
+    npair=wp.zeros(1, dtype=int),
+    ndropped=wp.zeros(nworld, dtype=int),
+    nwarned=wp.zeros(1, dtype=int),
+    slot_pair=wp.zeros(nslot, dtype=wp.vec2i),
+    slot_pairid=wp.zeros(nslot, dtype=wp.vec2i),
+    world_count=wp.zeros(nworld, dtype=int),
+    world_start=wp.zeros(nworld, dtype=int),
+    pair=wp.zeros(capacity, dtype=wp.vec2i),
+    pairid=wp.zeros(capacity, dtype=wp.vec2i),
+    pair_worldid=wp.zeros(capacity, dtype=int),
+    stock_ctx=CollisionContext(
+      collision_pair=wp.zeros(d.naconmax, dtype=wp.vec2i),
+      collision_pairid=wp.zeros(d.naconmax, dtype=wp.vec2i),
+      collision_worldid=wp.zeros(d.naconmax, dtype=int),
+    ),
+    capacity=capacity,
+    outputs=PairOutputs(),
+  )
+  out = b.outputs
+  out.world_npair, out.slot_pair, out.slot_pairid = b.world_npair, b.slot_pair, b.slot_pairid
+  out.ndropped, out.nwarned, out.overflow, out.ncollision = b.ndropped, b.nwarned, d.overflow, d.ncollision
+  out.stock_pair = b.stock_ctx.collision_pair
+  out.stock_pairid = b.stock_ctx.collision_pairid
+  out.stock_worldid = b.stock_ctx.collision_worldid
+  out.npair, out.pair, out.pairid, out.pair_worldid = b.npair, b.pair, b.pairid, b.pair_worldid
+  return b
+
+
+def _grid_of(kernel, m, d) -> dict:
+  """A one-thread-a-pair kernel's launch on a GPU as stock MuJoCo Warp launches its nxn: its
+  block size, and blocks capped at a few times what fills the GPU, each thread looping over
+  several (world, pair) items (a robot's thousand pairs in 8192 worlds would otherwise start
+  millions of threads that mostly test one box each and exit)."""
+  if not d.geom_xpos.device.is_cuda or first_use.planning():
+    return {}  # a plan's launches are skipped: the occupancy query would load the module
+  block_dim = m.block_dim.nxn_broadphase
+  return {"block_dim": block_dim, "max_blocks": max(1, 8 * _filling_threads(kernel, d.geom_xpos.device) // block_dim)}
+
+
+_FILLING_THREADS = {}  # (kernel, device alias): threads; Warp's Device is not hashable
+
+
+def _filling_threads(kernel, device) -> int:
+  """Threads that fill the GPU with ``kernel`` (CUDA's occupancy suggestion), asked once per
+  kernel and device: the query is a driver call, and the launch is made every step."""
+  key = (kernel, device.alias)
+  if key not in _FILLING_THREADS:
+    block, grid = wp.get_suggested_block_size(kernel, device)
+    _FILLING_THREADS[key] = block * grid
+  return _FILLING_THREADS[key]
+
+
+def launch(c, m, d, b: Buffers, queues: PairQueues, awake_prev):
+  """The broad phase of one step: boxes, then nxn or the sweep (and the listed pairs), then the
+  compacted pair list, its pairs dealt out to ``queues`` (``c``: the installed Collider)."""
+  wp.launch(
+    update_aabbs,
+    dim=(d.nworld, c.ngeom),
+    inputs=[m.geom_type, m.geom_dataid, m.geom_aabb, m.geom_margin, m.geom_gap, d.geom_xpos, d.geom_xmat],
+    outputs=[b.aabb_lo, b.aabb_hi, b.nonfinite],
+  )
+  enable_sleep = bool(m.opt.enableflags & EnableBit.SLEEP)
+  incremental = awake_prev is not None
+  key = (
+    int(m.opt.broadphase_filter),
+    m.geom_aabb.shape[0],
+    m.geom_rbound.shape[0],
+    m.geom_margin.shape[0],
+    m.geom_gap.shape[0],
+    m.pair_margin.shape[0],
+    m.pair_gap.shape[0],
+    enable_sleep,
+    incremental,
+  )
+  awake_prev_in = awake_prev if incremental else d.body_awake
+  warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
+  common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                  m.pair_gap]
+  common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, c.geom_stock, b.aabb_lo,
+                 b.aabb_hi]
+
+  def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
+    kernel = listed_pairs_kernel(key, direct)
+    wp.launch(
+      kernel,
+      dim=(d.nworld, npair),
+      inputs=common_model + common_data + [pairs, pairids, c.max_pairs, warn],
+      outputs=[b.outputs, queues],
+      **_grid_of(kernel, m, d),
+    )
+
+  if c.nxn:
+    listed(True, m.nxn_geom_pair_filtered, m.nxn_pairid_filtered, c.npair_filtered)
+    return
+  if c.ngeom > 1:
+    wp.launch(sort_endpoints, dim=d.nworld, inputs=[c.ngeom, c.options.sap_axis, b.aabb_lo],
+              outputs=[b.sap_init, b.order])
+    wp.launch(
+      sweep_kernel(key, c.options.sap_axis),
+      dim=(d.nworld, c.ngeom),
+      inputs=[c.ngeom] + common_model + [m.nxn_pairid] + common_data + [c.max_pairs, warn, b.order],
+      outputs=[b.outputs],
+    )
+  if c.nexplicit:
+    listed(False, c.explicit_pair, c.explicit_pairid, c.nexplicit)
+  wp.launch(clamp_counts, dim=d.nworld, inputs=[c.max_pairs, b.world_npair], outputs=[b.world_count])
+  wp.utils.array_scan(b.world_count, b.world_start, inclusive=False)
+  wp.launch(
+    compact_pairs,
+    dim=(d.nworld, c.max_pairs),
+    inputs=[m.geom_type, c.max_pairs, b.world_count, b.world_start],
+    outputs=[b.outputs, queues],
+  )

@@ -5,10 +5,13 @@ set of models and option combinations; fixtures that own compiled state are modu
 scoped.
 """
 
+import atexit
 import contextlib
 import ctypes
 import os
+import shutil
 import sys
+import tempfile
 import types
 
 import numpy as np
@@ -18,6 +21,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MODELS = os.path.join(ROOT, "models")
 if ROOT not in sys.path:
   sys.path.insert(0, ROOT)
+# install's disk cache (support fields, SDFs): the test session's own, so that tests neither read
+# nor fill the user's; subprocesses inherit it
+_CACHE = tempfile.mkdtemp(prefix="mjx_supportfield_test_cache_")
+os.environ["MJX_SUPPORTFIELD_CACHE"] = _CACHE
+atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 # benchmarks/scenelib: the repository's scenes and measures (not part of the installed package)
 if os.path.join(ROOT, "benchmarks") not in sys.path:
   sys.path.insert(0, os.path.join(ROOT, "benchmarks"))

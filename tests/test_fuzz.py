@@ -26,6 +26,8 @@ The draws keep what made Hypothesis' examples useful: 1 float in 8 is a bound of
 Cases the fuzzing found are kept below as regression tests (REGRESSIONS).
 """
 
+import os
+
 import mujoco
 import numpy as np
 import pytest
@@ -45,11 +47,11 @@ SPECIAL = 1 / 8  # share of float draws that take a bound of their range or 0
 
 @pytest.fixture(scope="module", autouse=True)
 def sdf_cache(tmp_path_factory):
-  """Random hulls would fill the user's SDF cache: bake into a temporary one."""
-  saved = sdf.CACHE_DIR
-  sdf.CACHE_DIR = str(tmp_path_factory.mktemp("sdf_cache"))
+  """Random hulls would fill the session's disk cache: build into a temporary one."""
+  saved = os.environ["MJX_SUPPORTFIELD_CACHE"]
+  os.environ["MJX_SUPPORTFIELD_CACHE"] = str(tmp_path_factory.mktemp("install_cache"))
   yield
-  sdf.CACHE_DIR = saved
+  os.environ["MJX_SUPPORTFIELD_CACHE"] = saved
 
 
 # --- random examples ------------------------------------------------------------------------------

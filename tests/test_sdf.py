@@ -61,10 +61,10 @@ def test_baked_sdf_matches_box_distance(sim):
 
 def test_disk_cache(sim, tmp_path, monkeypatch):
   s, _ = sim
-  monkeypatch.setattr(sdfmod, "CACHE_DIR", str(tmp_path))
+  monkeypatch.setenv("MJX_SUPPORTFIELD_CACHE", str(tmp_path))
   big = mujoco.mj_name2id(s.mjm, mujoco.mjtObj.mjOBJ_MESH, "big")
   first = sdfmod.build_mesh_sdf(s.mjm, 16, {big})
-  assert len(list(tmp_path.iterdir())) == 1
+  assert len(list((tmp_path / "sdf").iterdir())) == 1
   second = sdfmod.build_mesh_sdf(s.mjm, 16, {big})
   np.testing.assert_array_equal(first.values.numpy(), second.values.numpy())
 

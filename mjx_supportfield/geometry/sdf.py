@@ -2,12 +2,10 @@
 
 Mesh hulls are baked once on a regular grid (20 % padding around the hull, ``sdf_res`` cells
 along its longest side) with Warp's winding-number mesh queries, and cached on disk keyed by
-the hull's content. Primitives use closed forms.
+the hull's content and the bake's code (disk_cache.py). Primitives use closed forms.
 """
 
 import functools
-import hashlib
-import os
 from types import SimpleNamespace
 
 import mujoco
@@ -15,6 +13,7 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src.types import GeomType
 
+from mjx_supportfield.geometry import disk_cache
 from mjx_supportfield.geometry.hull_graph import hull_graph
 from mjx_supportfield.geometry.support import GRID_DIRECTIONS
 from mjx_supportfield.geometry.support import hull_point
@@ -28,7 +27,6 @@ PADDING = 0.2
 # the distance of a point to a shape without an SDF, and the bake's search radius: past any
 # depth a contact could have
 NO_SDF = 1.0e6
-CACHE_DIR = os.path.join(os.path.expanduser("~"), ".cache", "mjx_supportfield", "sdf")
 
 
 @wp.struct
@@ -66,22 +64,17 @@ def bake_mesh(verts: np.ndarray, tris: np.ndarray, sdf_res: int, device=None):
   lo = vmin - PADDING * ext
   cell = float((ext * (1 + 2 * PADDING)).max() / sdf_res)
   res = np.maximum(np.ceil(ext * (1 + 2 * PADDING) / cell).astype(int) + 1, 2)
-  digest = hashlib.sha1(verts.astype(np.float32).tobytes() + tris.astype(np.int32).tobytes() + str(sdf_res).encode())
-  path = os.path.join(CACHE_DIR, f"{digest.hexdigest()}.npy")
-  if os.path.exists(path):
-    values = np.load(path)
-  else:
-    mesh = wp.Mesh(points=wp.array(verts.astype(np.float32), dtype=wp.vec3, device=device),
-                   indices=wp.array(tris.ravel(), dtype=int, device=device), support_winding_number=True)
-    out = wp.zeros(int(np.prod(res)), dtype=float, device=device)
-    wp.launch(_bake, dim=tuple(int(x) for x in res), inputs=[mesh.id, wp.vec3(*lo), cell, wp.vec3i(*res)],
-              outputs=[out], device=device)
-    values = out.numpy()
-    try:
-      os.makedirs(CACHE_DIR, exist_ok=True)
-      np.save(path, values)
-    except OSError:
-      pass  # a read-only home only costs the bake next time
+  digest = disk_cache.key(("sdf", verts.astype(np.float32), tris.astype(np.int32), sdf_res), code=(_bake.func,))
+  cached = disk_cache.load("sdf", digest)
+  if cached is not None and "values" in cached and cached["values"].shape == (int(np.prod(res)),):
+    return cached["values"], res, lo, cell
+  mesh = wp.Mesh(points=wp.array(verts.astype(np.float32), dtype=wp.vec3, device=device),
+                 indices=wp.array(tris.ravel(), dtype=int, device=device), support_winding_number=True)
+  out = wp.zeros(int(np.prod(res)), dtype=float, device=device)
+  wp.launch(_bake, dim=tuple(int(x) for x in res), inputs=[mesh.id, wp.vec3(*lo), cell, wp.vec3i(*res)],
+            outputs=[out], device=device)
+  values = out.numpy()
+  disk_cache.store("sdf", digest, {"values": values})
   return values, res, lo, cell
 
 

@@ -16,6 +16,9 @@ exact support on a dense check set (4 directions inside every cell plus random o
 """
 
 import dataclasses
+import logging
+import sys
+import time
 from typing import Collection
 from typing import Optional
 
@@ -23,6 +26,9 @@ import mujoco
 import numpy as np
 import warp as wp
 
+from mjx_supportfield import types as mjx_types
+from mjx_supportfield.geometry import disk_cache
+from mjx_supportfield.geometry import support
 from mjx_supportfield.geometry.hull_graph import hull_graph
 from mjx_supportfield.geometry.support import CERTIFIED
 from mjx_supportfield.geometry.support import CORNERS_EXACT
@@ -50,6 +56,10 @@ _NCHECK_SUB = 2  # in-cell samples per cell side
 # cones meet inside one cell, so those meshes get the cap without paying for finer checks
 _ADAPTIVE_MAX = 64
 MAX_HULL = INDEX_MASK  # largest hull a cell's 14 index bits can address
+# what install builds of the fields (and the disk cache keeps): MeshSupport's arrays and dtypes
+_FIELD_DTYPES = {"field_res": int, "field_adr": int, "field": wp.uint16, "extra_adr": int, "extra": wp.uint16}
+FIELD_ARRAYS = tuple(_FIELD_DTYPES)
+logger = logging.getLogger("mjx_supportfield")
 
 
 @dataclasses.dataclass
@@ -608,7 +618,21 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   ms.plane_num = arr(hd.plane_num if has_planes else np.zeros(nmesh, np.int32))
   ms.plane = arr(hd.plane if has_planes else np.zeros((1, 4), np.float32), wp.vec4)
   _set_polygons(ms, hd, hull_pos, arr)
-  extremes = wp.array(extreme_vertices(hd, host_vert, vertadr), dtype=int, device=device)
+  extremes_host = extreme_vertices(hd, host_vert, vertadr)
+  digest = disk_cache.key(
+    ("fields", wp.get_device(device).is_cuda, res, adaptive, hd.hull_adr, hd.hull_num, hd.hull_vert, hd.nbr_adr,
+     hd.nbr_num, hd.nbr, hull_pos.astype(np.float32), extremes_host),
+    code=(sys.modules[__name__], support, mjx_types))
+  cached = disk_cache.load("fields", digest)
+  if cached is not None and set(cached) == set(FIELD_ARRAYS):
+    for name in FIELD_ARRAYS:
+      setattr(ms, name, wp.array(cached[name], dtype=_FIELD_DTYPES[name], device=device))
+    logger.info("support fields of %d meshes: from the cache (%s)", int((hd.hull_num > 0).sum()), disk_cache.root())
+    return ms
+  start = time.perf_counter()
+  logger.info("support fields of %d meshes: building and proving them (not in the cache at %s yet)",
+              int((hd.hull_num > 0).sum()), disk_cache.root())
+  extremes = wp.array(extremes_host, dtype=int, device=device)
   if adaptive:
     field_res = choose_resolutions(ms, hd.hull_num, res, extremes, device)
   else:
@@ -617,6 +641,9 @@ def build_from_hulls(hd: HullData, vert: wp.array, vertadr: np.ndarray, res: int
   _build(ms, field_res, extremes, device, certify=True)
   if adaptive:
     _fit_budget(ms, field_res, 2 * res * res, extremes, device)
+  disk_cache.store("fields", digest, {name: getattr(ms, name).numpy() for name in FIELD_ARRAYS})
+  logger.info("support fields built in %.1f s; later installs of these meshes read them from the cache",
+              time.perf_counter() - start)
   return ms
 
 

@@ -47,10 +47,9 @@ def _imports(path: str) -> set:
   found = set()
   for node in ast.walk(ast.parse(open(path).read())):
     if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("mjx_supportfield"):
-      found.add(node.module)
-      for alias in node.names:  # from mjx_supportfield.stages import heightfield
-        if f"{node.module}.{alias.name}" in _modules():
-          found.add(f"{node.module}.{alias.name}")
+      for alias in node.names:  # a module (from mjx_supportfield.stages import heightfield), or a name of one
+        sub = f"{node.module}.{alias.name}"
+        found.add(sub if sub in _modules() else node.module)
     elif isinstance(node, ast.Import):
       found |= {a.name for a in node.names if a.name.startswith("mjx_supportfield")}
   return found

@@ -1,9 +1,10 @@
 """The installed collision stage: the driver that runs the stages in pipeline order.
 
-Each stage module owns its kernels, its per-Data buffers and the function that launches them
-(broadphase, narrowphase, deep_pairs, multicontact_pass, heightfield, nonconvex, contact_quota,
-contact_sort, stage_ends). This module holds the model-time data the stages read (``Collider``),
-the per-Data state (``DataState``) and the order of the calls; it launches no kernel of its own.
+Each stage module owns its kernels and a stage class (launch/stage.py's contract: model-time
+facts, per-Data buffers, one ``launch``): broadphase, narrowphase, deep_pairs, multicontact_pass,
+heightfield, nonconvex. This module builds the model-time data and the stages (``Collider``),
+keeps the per-Data state (``DataState``) and runs the stages in order between the start
+(stage_ends) and the contact rows' packing and sort (launch/); it launches no kernel of its own.
 """
 
 import dataclasses
@@ -52,14 +53,18 @@ _SLEEP_QUOTA = ("mjx_supportfield: Options.contacts_per_world does not work with
 
 @dataclasses.dataclass
 class DataState:
-  """Per-Data buffers, one set per stage: sizes depend on nworld, which install cannot know."""
+  """Per-Data buffers, one set per stage under the stage's name (sizes depend on nworld, which
+  install cannot know), and the call's ``awake_prev``: what a stage's launch reads."""
 
-  broad: broadphase.Buffers  # boxes, pair list, the pairs left to MuJoCo Warp (stock_ctx)
-  narrow: narrowphase.Buffers  # narrow-phase and multi-contact queues
-  deep: deep_pairs.Buffers  # MPR's deep answers queued for their check
-  hfield: heightfield.Buffers
   warm: warmstart.WarmCache
   quota: contact_quota.QuotaBuffers  # each world's contact rows (Options.contacts_per_world)
+  broad: Optional[broadphase.Buffers] = None  # boxes, pair list, the pairs left to MuJoCo Warp (stock_ctx)
+  narrow: Optional[narrowphase.Buffers] = None  # narrow-phase and multi-contact queues
+  deep: Optional[deep_pairs.Buffers] = None  # MPR's deep answers queued for their check
+  multicontact: None = None  # the pass works in the narrow phase's buffers
+  hfield: Optional[heightfield.Buffers] = None
+  nonconvex: None = None
+  awake_prev: Optional[wp.array] = None  # the collision call's (sleeping's incremental pass), else None
   sort: Optional[contact_sort.SortBuffers] = None  # made on the first deterministic call
   fields: Optional[tuple] = None  # contact_sort.fields_and_copy, made on first use: packing's and sorting's scratch
 
@@ -127,52 +132,62 @@ class Collider:
       self.geom_stock = wp.array(stock.astype(np.int32), dtype=int)
 
       explicit = (pairids[:, 0] >= 0) | (pairids[:, 1] >= 0)
-      self.nexplicit = int(explicit.sum())
-      self.explicit_pair = wp.array(pairs[explicit].astype(np.int32), dtype=wp.vec2i)
-      self.explicit_pairid = wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i)
       # no world can have more pairs than the model allows after its static filters
-      self.max_pairs = npair_max = max(1, min(options.max_collision_pairs, len(pairs)))
-      self.npair_filtered = len(pairs)
-      self.nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
+      max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
+      nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
       self.has_stock_pairs = bool(stock.any()) or bool((pairids[:, 1] >= 0).any())
+      self.broad = broadphase.BroadPhase(
+        mjm.ngeom, nxn, max_pairs, len(pairs), wp.array(pairs[explicit].astype(np.int32), dtype=wp.vec2i),
+        wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i), self.geom_stock, options.sap_axis)
 
       present = routing.pair_types_present(mjm, pairs)
-      self.analytic_types, self.mpr_types, queue_table = routing.pair_queue_table(present, options.narrowphase == "gjk")
-      self.pair_queue_type = wp.array(queue_table, dtype=int)
-      self.has_core_pairs = any(t in (GeomType.SPHERE, GeomType.CAPSULE) for pair in self.mpr_types for t in pair)
-      self.has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
+      analytic_types, mpr_types, queue_table = routing.pair_queue_table(present, options.narrowphase == "gjk")
+      has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       queues = queue_table[t1 * routing.NGEOMTYPE + t2]
       nmpr = int(((queues == routing.QUEUE_GJK) | (queues == routing.QUEUE_CANDIDATE)).sum())
-      self.warm_slots = warmstart.slots_per_world(min(nmpr, self.max_pairs))
+      self.warm_slots = warmstart.slots_per_world(min(nmpr, max_pairs))
       on_hfield = t1 == GeomType.HFIELD  # bounds its kernels' pairs; boxes and meshes collide prisms by GJK/EPA
-      self.hfield_pairs_per_world = min(int((on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))).sum()), npair_max)
-      self.hfield_ccd = bool((on_hfield & np.isin(t2, [int(GeomType.BOX), int(GeomType.MESH)])).any())
-      # spheres and capsules on terrain: heightfield.py's closed-form kernel (hfield_closed_form.py)
-      self.hfield_closed_form = bool((on_hfield & np.isin(t2, [int(GeomType.SPHERE), int(GeomType.CAPSULE)])).any())
-      self.hfield_ccd_iterations = int(mjm.opt.ccd_iterations)
+      self.hfield = heightfield.Heightfield(
+        options, self.support_mode, self.mesh_support, has_hfield_pairs,
+        min(int((on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))).sum()), max_pairs),
+        bool((on_hfield & np.isin(t2, [int(GeomType.BOX), int(GeomType.MESH)])).any()),
+        # spheres and capsules on terrain: the closed-form kernel (hfield_closed_form.py)
+        bool((on_hfield & np.isin(t2, [int(GeomType.SPHERE), int(GeomType.CAPSULE)])).any()),
+        int(mjm.opt.ccd_iterations))
       # non-convex meshes: their own triangles' SDFs
       ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
       nonconvex.warn_open_meshes(mjm, ncgeoms)
       flags = np.isin(np.arange(mjm.ngeom), ncgeoms).astype(np.int32)
-      self.geom_nonconvex = wp.array(flags, dtype=int)
-      self.has_nonconvex_pairs = bool(len(ncgeoms)) and bool(flags[pairs].any()) if len(pairs) else False
+      geom_nonconvex = wp.array(flags, dtype=int)
+      has_nonconvex_pairs = bool(len(ncgeoms)) and bool(flags[pairs].any()) if len(pairs) else False
       ncmeshes = {int(mjm.geom_dataid[g]) for g in ncgeoms}
-      self.mesh_faceadr = wp.array(np.asarray(mjm.mesh_faceadr, np.int32).reshape(-1), dtype=int)
-      self.mesh_facenum = wp.array(np.asarray(mjm.mesh_facenum, np.int32).reshape(-1), dtype=int)
-      self.sdfs = nonconvex.SdfSet()
-      self.sdfs.true_mesh = build_mesh_sdf(mjm, options.nonconvex_sdf_res, ncmeshes, device, nonconvex.mesh_triangles)
+      sdfs = nonconvex.SdfSet()
+      sdfs.true_mesh = build_mesh_sdf(mjm, options.nonconvex_sdf_res, ncmeshes, device, nonconvex.mesh_triangles)
       # hull SDFs: for the fallback of meshes that meet another shape through MPR, and for the
       # convex meshes a non-convex one may touch
       mesh_ids = set(self.collided_meshes)
       meshes = set()
-      if options.mpr_to_sdf_overlap_ratio > 0 and any(GeomType.MESH in t for t in self.mpr_types):
+      if options.mpr_to_sdf_overlap_ratio > 0 and any(GeomType.MESH in t for t in mpr_types):
         meshes = set(mesh_ids)
-      if self.has_nonconvex_pairs:
+      if has_nonconvex_pairs:
         meshes |= mesh_ids
       self.mesh_sdf = build_mesh_sdf(mjm, options.sdf_res, meshes, device)
-      self.sdfs.hull = self.mesh_sdf
-    self.stock_path = routing.gives_plugin_nothing(self, m)
+      sdfs.hull = self.mesh_sdf
+      self.narrow = narrowphase.NarrowPhase(options, self.support_mode, self.mesh_support, self.mesh_sdf, analytic_types,
+                                            mpr_types, wp.array(queue_table, dtype=int), geom_nonconvex)
+      self.deep = deep_pairs.DeepPairs(options, self.support_mode, self.mesh_support, mpr_types)
+      self.multicontact = multicontact_pass.MultiContactPass(options, self.support_mode, self.mesh_support, mpr_types)
+      self.nonconvex = nonconvex.NonConvex(
+        options, self.support_mode, self.mesh_support, has_nonconvex_pairs, geom_nonconvex,
+        wp.array(np.asarray(mjm.mesh_faceadr, np.int32).reshape(-1), dtype=int),
+        wp.array(np.asarray(mjm.mesh_facenum, np.int32).reshape(-1), dtype=int), sdfs)
+    self.mpr_types = mpr_types
+    # the pipeline's stages in launch order, each under its name in DataState (the stage contract)
+    self.stages = {"broad": self.broad, "narrow": self.narrow, "deep": self.deep, "multicontact": self.multicontact,
+                   "hfield": self.hfield, "nonconvex": self.nonconvex}
+    self.stock_path = routing.gives_plugin_nothing(options, nxn, bool(mpr_types or has_hfield_pairs
+                                                                      or has_nonconvex_pairs), m)
 
   # --- per-Data state -------------------------------------------------------------------
 
@@ -192,15 +207,10 @@ class Collider:
     if st is None:
       self._check_data(d)
       with wp.ScopedDevice(self.device):
-        broad = broadphase.make_buffers(self, d)
-        st = DataState(
-          broad=broad,
-          narrow=narrowphase.make_buffers(self, d.nworld, broad.capacity),
-          deep=deep_pairs.make_buffers(d.nworld, broad.capacity),
-          hfield=heightfield.make_buffers(self, d.nworld),
-          warm=warmstart.make_cache(d.nworld, self.warm_slots if self.options.warm_start else 1),
-          quota=contact_quota.make_buffers(d.nworld, self.options.contacts_per_world),
-        )
+        st = DataState(warm=warmstart.make_cache(d.nworld, self.warm_slots if self.options.warm_start else 1),
+                       quota=contact_quota.make_buffers(d.nworld, self.options.contacts_per_world))
+        for name, stage in self.stages.items():
+          setattr(st, name, stage.make_buffers(d, st))
       states[self] = st
     return st
 
@@ -283,14 +293,11 @@ class Collider:
     stage_ends.start(d, st, incremental, bool(self.mpr_types) and self.options.warm_start)
     if per_world:
       contact_quota.start(d, st.quota, per_world)
-    quota = st.quota.quota
-    broadphase.launch(self, m, d, st.broad, st.narrow.queues, awake_prev)
-    narrowphase.launch(self, m, d, st.broad, st.narrow, st.warm, quota, st.deep)
-    # before the multi-contact pass: a checked pair joins its queue with the corrected normal
-    deep_pairs.launch(self, m, d, st.broad, st.deep, st.narrow, st.warm, quota)
-    multicontact_pass.launch_multicontact(self, m, d, st.broad, st.narrow, quota)
-    heightfield.launch(self, m, d, st.broad, st.hfield, quota)
-    nonconvex.launch(self, m, d, st.broad, quota)
+    st.awake_prev = awake_prev
+    # in order; the deep-pair check before the multi-contact pass: a checked pair joins its queue
+    # with the corrected normal
+    for stage in self.stages.values():
+      stage.launch(m, d, st)
     if self.has_stock_pairs:  # SDF geoms, collision-sensor pairs: MuJoCo Warp's own narrow phase
       collision_driver._narrowphase(m, d, st.broad.stock_ctx)
     if m.nflex > 0 and not incremental:
@@ -317,7 +324,7 @@ class Collider:
     pair tables); MuJoCo Warp's arrays that the plugin reads in place (mesh vertices) not counted."""
     shared = {id(self.mesh_support.vert)}
     seen, total = set(), 0
-    for holder in (self, self.mesh_support, self.mesh_sdf, self.sdfs.true_mesh):
+    for holder in (self, *self.stages.values(), self.mesh_support, self.mesh_sdf, self.nonconvex.sdfs.true_mesh):
       for value in vars(holder).values():
         if isinstance(value, wp.array) and id(value) not in shared | seen:
           seen.add(id(value))

@@ -138,7 +138,7 @@ def collect(c, d, st) -> CollisionStats:
   return CollisionStats({
     "path": "plugin",
     "pairs": int(broad.npair.numpy()[0]),
-    "pairs_per_world": np.minimum(broad.world_npair.numpy(), c.max_pairs).tolist(),
+    "pairs_per_world": np.minimum(broad.world_npair.numpy(), c.broad.max_pairs).tolist(),
     "dropped_pairs_per_world": broad.ndropped.numpy().tolist(),
     "nonfinite_worlds": np.nonzero(broad.nonfinite.numpy())[0].tolist(),
     **_dropped_contacts(c, d, st),

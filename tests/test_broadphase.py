@@ -139,7 +139,7 @@ def test_pairs_against_brute_force(scene, broadphase, sap_axis):
   rng = np.random.default_rng(1234 + sap_axis)
   sim = load(scene, nworld=NWORLD)
   sf.install(sim.mjm, sim.m, sf.Options(broadphase=broadphase, sap_axis=sap_axis))
-  assert sf.get_collider(sim.m).nxn == (broadphase == "nxn")
+  assert sf.get_collider(sim.m).broad.nxn == (broadphase == "nxn")
   mjm = sim.mjm
   scale = 0.01 if scene == "convex_pile" else 0.02
 
@@ -164,10 +164,10 @@ def test_auto_broadphase_follows_the_pair_count(monkeypatch):
   """"auto" takes nxn up to NXN_MAX_PAIRS statically kept pairs and sweep-and-prune beyond."""
   sim = load("primitives_plane", nworld=1)
   npair = len(sim.m.nxn_geom_pair_filtered.numpy())
-  assert sf.install(sim.mjm, sim.m).nxn
+  assert sf.install(sim.mjm, sim.m).broad.nxn
   sf.uninstall(sim.m)
   monkeypatch.setattr(sf.collider, "NXN_MAX_PAIRS", npair - 1)
-  assert not sf.install(sim.mjm, sim.m).nxn
+  assert not sf.install(sim.mjm, sim.m).broad.nxn
   sf.uninstall(sim.m)
 
 

@@ -26,7 +26,7 @@ def test_go1_on_rough_terrain_with_the_plugin():
   mjlab_tasks.stub_optional_imports()
   env = mjlab_tasks.make_env("Mjlab-Velocity-Rough-Unitree-Go1", 2, "cpu", plugin=True)
   collider = sf.get_collider(env.sim.wp_model)
-  assert collider is not None and collider.has_hfield_pairs
+  assert collider is not None and collider.hfield.has_pairs
   row = mjlab_tasks.run(env, steps=40, warmup=2)
   assert row["contacts_per_world"] > 0
   assert row["nonfinite_worlds"] == 0 and row["bodies_below_ground"] == 0 and row["buffer_overflow"] == []

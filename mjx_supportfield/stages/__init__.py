@@ -3,5 +3,6 @@ broad phase (``broadphase``, with the pair routing of ``routing``), the narrow p
 (``narrowphase``, warm-started by ``warmstart``), the multi-contact pass (``multicontact_pass``),
 the deep-pair check (``deep_pairs``), heightfields (``heightfield``, ``hfield_closed_form``, with
 their cells' and windows' device functions), non-convex meshes (``nonconvex``) and the stage ends
-(``stage_ends``). Each owns its kernels, its per-Data buffers and its host ``launch``; candidate
+(``stage_ends``). Each owns its kernels and a stage class (``launch/stage.py``'s contract: model-time facts,
+per-Data buffers, one ``launch``); candidate
 contacts merged before writing are ``candidates``'s."""

@@ -17,9 +17,9 @@ Two ways, chosen at install (``Options.broadphase``):
 Both apply the sleep rules and MuJoCo Warp's own bounding filters (plane, sphere, AABB, OBB
 per ``m.opt.broadphase_filter``).
 
-This module owns the broad phase's kernels, its per-Data buffers (``Buffers``, ``make_buffers``)
-and its host entry, ``launch``: the geoms' boxes (aabb.py's kernel), then nxn or the sweep, then
-the compacted pair list and the narrow-phase queues.
+This module owns the broad phase's kernels, its per-Data buffers (``Buffers``) and its stage
+class, ``BroadPhase``, whose ``launch`` runs the geoms' boxes (aabb.py's kernel), then nxn or
+the sweep, then the compacted pair list and the narrow-phase queues.
 """
 
 import dataclasses
@@ -476,47 +476,6 @@ class Buffers:
   outputs: PairOutputs  # the arrays above (and d's overflow, ncollision) for the kernels
 
 
-def make_buffers(c, d) -> Buffers:
-  """The broad phase's buffers for Data ``d`` of the model Collider ``c`` was installed on."""
-  nworld = d.nworld
-  capacity = nworld * c.max_pairs
-  # the sweep's per-world slots; nxn lists pairs directly, so it needs none (two large arrays saved)
-  nslot = 1 if c.nxn else capacity
-  b = Buffers(
-    aabb_lo=wp.zeros((nworld, c.ngeom), dtype=wp.vec3),
-    aabb_hi=wp.zeros((nworld, c.ngeom), dtype=wp.vec3),
-    nonfinite=wp.zeros(nworld, dtype=int),
-    sap_init=wp.zeros(nworld, dtype=int),
-    order=wp.zeros((nworld, max(c.ngeom, 1)), dtype=int),
-    world_npair=wp.zeros(nworld, dtype=int),
-    npair=wp.zeros(1, dtype=int),
-    ndropped=wp.zeros(nworld, dtype=int),
-    nwarned=wp.zeros(1, dtype=int),
-    slot_pair=wp.zeros(nslot, dtype=wp.vec2i),
-    slot_pairid=wp.zeros(nslot, dtype=wp.vec2i),
-    world_count=wp.zeros(nworld, dtype=int),
-    world_start=wp.zeros(nworld, dtype=int),
-    pair=wp.zeros(capacity, dtype=wp.vec2i),
-    pairid=wp.zeros(capacity, dtype=wp.vec2i),
-    pair_worldid=wp.zeros(capacity, dtype=int),
-    stock_ctx=CollisionContext(
-      collision_pair=wp.zeros(d.naconmax, dtype=wp.vec2i),
-      collision_pairid=wp.zeros(d.naconmax, dtype=wp.vec2i),
-      collision_worldid=wp.zeros(d.naconmax, dtype=int),
-    ),
-    capacity=capacity,
-    outputs=PairOutputs(),
-  )
-  out = b.outputs
-  out.world_npair, out.slot_pair, out.slot_pairid = b.world_npair, b.slot_pair, b.slot_pairid
-  out.ndropped, out.nwarned, out.overflow, out.ncollision = b.ndropped, b.nwarned, d.overflow, d.ncollision
-  out.stock_pair = b.stock_ctx.collision_pair
-  out.stock_pairid = b.stock_ctx.collision_pairid
-  out.stock_worldid = b.stock_ctx.collision_worldid
-  out.npair, out.pair, out.pairid, out.pair_worldid = b.npair, b.pair, b.pairid, b.pair_worldid
-  return b
-
-
 def _grid_of(kernel, m, d) -> dict:
   """A one-thread-a-pair kernel's launch on a GPU as stock MuJoCo Warp launches its nxn: its
   block size, and blocks capped at a few times what fills the GPU, each thread looping over
@@ -541,64 +500,120 @@ def _filling_threads(kernel, device) -> int:
   return _FILLING_THREADS[key]
 
 
-def launch(c, m, d, b: Buffers, queues: PairQueues, awake_prev):
-  """The broad phase of one step: boxes, then nxn or the sweep (and the listed pairs), then the
-  compacted pair list, its pairs dealt out to ``queues`` (``c``: the installed Collider)."""
-  wp.launch(
-    update_aabbs,
-    dim=(d.nworld, c.ngeom),
-    inputs=[m.geom_type, m.geom_dataid, m.geom_aabb, m.geom_margin, m.geom_gap, d.geom_xpos, d.geom_xmat],
-    outputs=[b.aabb_lo, b.aabb_hi, b.nonfinite],
-  )
-  enable_sleep = bool(m.opt.enableflags & EnableBit.SLEEP)
-  incremental = awake_prev is not None
-  key = (
-    int(m.opt.broadphase_filter),
-    m.geom_aabb.shape[0],
-    m.geom_rbound.shape[0],
-    m.geom_margin.shape[0],
-    m.geom_gap.shape[0],
-    m.pair_margin.shape[0],
-    m.pair_gap.shape[0],
-    enable_sleep,
-    incremental,
-  )
-  awake_prev_in = awake_prev if incremental else d.body_awake
-  warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
-  common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-                  m.pair_gap]
-  common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, c.geom_stock, b.aabb_lo,
-                 b.aabb_hi]
+class BroadPhase:
+  """The broad phase: the model's pair facts install found, per-Data buffers, and the step's
+  launches (the stage contract: docs/architecture.md)."""
 
-  def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
-    kernel = listed_pairs_kernel(key, direct)
+  def __init__(self, ngeom: int, nxn: bool, max_pairs: int, npair_filtered: int, explicit_pair: wp.array,
+               explicit_pairid: wp.array, geom_stock: wp.array, sap_axis: int):
+    self.ngeom = ngeom
+    self.nxn = nxn  # nxn's one launch, else sweep-and-prune
+    self.max_pairs = max_pairs  # pairs a world can have after MuJoCo's static filters (and the option's cap)
+    self.npair_filtered = npair_filtered
+    self.explicit_pair, self.explicit_pairid = explicit_pair, explicit_pairid  # <pair>s and sensor pairs
+    self.nexplicit = explicit_pair.shape[0]
+    self.geom_stock = geom_stock  # per geom: 1 when MuJoCo Warp's own narrow phase collides its pairs
+    self.sap_axis = sap_axis
+
+  def make_buffers(self, d, st) -> Buffers:
+    """The broad phase's buffers for Data ``d``."""
+    nworld = d.nworld
+    capacity = nworld * self.max_pairs
+    # the sweep's per-world slots; nxn lists pairs directly, so it needs none (two large arrays saved)
+    nslot = 1 if self.nxn else capacity
+    b = Buffers(
+      aabb_lo=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
+      aabb_hi=wp.zeros((nworld, self.ngeom), dtype=wp.vec3),
+      nonfinite=wp.zeros(nworld, dtype=int),
+      sap_init=wp.zeros(nworld, dtype=int),
+      order=wp.zeros((nworld, max(self.ngeom, 1)), dtype=int),
+      world_npair=wp.zeros(nworld, dtype=int),
+      npair=wp.zeros(1, dtype=int),
+      ndropped=wp.zeros(nworld, dtype=int),
+      nwarned=wp.zeros(1, dtype=int),
+      slot_pair=wp.zeros(nslot, dtype=wp.vec2i),
+      slot_pairid=wp.zeros(nslot, dtype=wp.vec2i),
+      world_count=wp.zeros(nworld, dtype=int),
+      world_start=wp.zeros(nworld, dtype=int),
+      pair=wp.zeros(capacity, dtype=wp.vec2i),
+      pairid=wp.zeros(capacity, dtype=wp.vec2i),
+      pair_worldid=wp.zeros(capacity, dtype=int),
+      stock_ctx=CollisionContext(
+        collision_pair=wp.zeros(d.naconmax, dtype=wp.vec2i),
+        collision_pairid=wp.zeros(d.naconmax, dtype=wp.vec2i),
+        collision_worldid=wp.zeros(d.naconmax, dtype=int),
+      ),
+      capacity=capacity,
+      outputs=PairOutputs(),
+    )
+    out = b.outputs
+    out.world_npair, out.slot_pair, out.slot_pairid = b.world_npair, b.slot_pair, b.slot_pairid
+    out.ndropped, out.nwarned, out.overflow, out.ncollision = b.ndropped, b.nwarned, d.overflow, d.ncollision
+    out.stock_pair = b.stock_ctx.collision_pair
+    out.stock_pairid = b.stock_ctx.collision_pairid
+    out.stock_worldid = b.stock_ctx.collision_worldid
+    out.npair, out.pair, out.pairid, out.pair_worldid = b.npair, b.pair, b.pairid, b.pair_worldid
+    return b
+
+  def launch(self, m, d, st) -> None:
+    """The broad phase of one step: boxes, then nxn or the sweep (and the listed pairs), then the
+    compacted pair list, its pairs dealt out to the narrow phase's queues."""
+    b, queues, awake_prev = st.broad, st.narrow.queues, st.awake_prev
     wp.launch(
-      kernel,
-      dim=(d.nworld, npair),
-      inputs=common_model + common_data + [pairs, pairids, c.max_pairs, warn],
+      update_aabbs,
+      dim=(d.nworld, self.ngeom),
+      inputs=[m.geom_type, m.geom_dataid, m.geom_aabb, m.geom_margin, m.geom_gap, d.geom_xpos, d.geom_xmat],
+      outputs=[b.aabb_lo, b.aabb_hi, b.nonfinite],
+    )
+    enable_sleep = bool(m.opt.enableflags & EnableBit.SLEEP)
+    incremental = awake_prev is not None
+    key = (
+      int(m.opt.broadphase_filter),
+      m.geom_aabb.shape[0],
+      m.geom_rbound.shape[0],
+      m.geom_margin.shape[0],
+      m.geom_gap.shape[0],
+      m.pair_margin.shape[0],
+      m.pair_gap.shape[0],
+      enable_sleep,
+      incremental,
+    )
+    awake_prev_in = awake_prev if incremental else d.body_awake
+    warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
+    common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                    m.pair_gap]
+    common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, b.aabb_lo,
+                   b.aabb_hi]
+
+    def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
+      kernel = listed_pairs_kernel(key, direct)
+      wp.launch(
+        kernel,
+        dim=(d.nworld, npair),
+        inputs=common_model + common_data + [pairs, pairids, self.max_pairs, warn],
+        outputs=[b.outputs, queues],
+        **_grid_of(kernel, m, d),
+      )
+
+    if self.nxn:
+      listed(True, m.nxn_geom_pair_filtered, m.nxn_pairid_filtered, self.npair_filtered)
+      return
+    if self.ngeom > 1:
+      wp.launch(sort_endpoints, dim=d.nworld, inputs=[self.ngeom, self.sap_axis, b.aabb_lo],
+                outputs=[b.sap_init, b.order])
+      wp.launch(
+        sweep_kernel(key, self.sap_axis),
+        dim=(d.nworld, self.ngeom),
+        inputs=[self.ngeom] + common_model + [m.nxn_pairid] + common_data + [self.max_pairs, warn, b.order],
+        outputs=[b.outputs],
+      )
+    if self.nexplicit:
+      listed(False, self.explicit_pair, self.explicit_pairid, self.nexplicit)
+    wp.launch(clamp_counts, dim=d.nworld, inputs=[self.max_pairs, b.world_npair], outputs=[b.world_count])
+    wp.utils.array_scan(b.world_count, b.world_start, inclusive=False)
+    wp.launch(
+      compact_pairs,
+      dim=(d.nworld, self.max_pairs),
+      inputs=[m.geom_type, self.max_pairs, b.world_count, b.world_start],
       outputs=[b.outputs, queues],
-      **_grid_of(kernel, m, d),
     )
-
-  if c.nxn:
-    listed(True, m.nxn_geom_pair_filtered, m.nxn_pairid_filtered, c.npair_filtered)
-    return
-  if c.ngeom > 1:
-    wp.launch(sort_endpoints, dim=d.nworld, inputs=[c.ngeom, c.options.sap_axis, b.aabb_lo],
-              outputs=[b.sap_init, b.order])
-    wp.launch(
-      sweep_kernel(key, c.options.sap_axis),
-      dim=(d.nworld, c.ngeom),
-      inputs=[c.ngeom] + common_model + [m.nxn_pairid] + common_data + [c.max_pairs, warn, b.order],
-      outputs=[b.outputs],
-    )
-  if c.nexplicit:
-    listed(False, c.explicit_pair, c.explicit_pairid, c.nexplicit)
-  wp.launch(clamp_counts, dim=d.nworld, inputs=[c.max_pairs, b.world_npair], outputs=[b.world_count])
-  wp.utils.array_scan(b.world_count, b.world_start, inclusive=False)
-  wp.launch(
-    compact_pairs,
-    dim=(d.nworld, c.max_pairs),
-    inputs=[m.geom_type, c.max_pairs, b.world_count, b.world_start],
-    outputs=[b.outputs, queues],
-  )

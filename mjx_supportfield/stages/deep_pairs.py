@@ -33,8 +33,8 @@ candidate of least overlap, the answer one thread scanning them all in order giv
 The check runs as faces (lanes), ``EDGE_ROUNDS`` walk rounds (lanes), edge pairs (lanes) and the
 finish (a thread a pair).
 
-This module owns the queue and the check's scratch (``Buffers``, ``make_buffers``), its kernels
-(``deep_kernels``) and the host entry, ``launch``. A checked pair leaves as the convex kernel would have left it:
+This module owns the queue and the check's scratch (``Buffers``), its kernels (``deep_kernels``)
+and its stage class, ``DeepPairs``. A checked pair leaves as the convex kernel would have left it:
 queued for multi-contact (``narrowphase.Buffers``' patch queue, so its manifold follows the
 corrected normal) or written as one contact; its warm-start normal is corrected too.
 """
@@ -61,6 +61,7 @@ from mjx_supportfield.launch.contact_quota import ContactQuota
 from mjx_supportfield.launch.contact_quota import contact_outputs
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
+from mjx_supportfield.options import Options
 from mjx_supportfield.stages import warmstart
 from mjx_supportfield.stages.narrowphase import wants_patch
 from mjx_supportfield.stages.narrowphase import write_pair_contacts
@@ -68,6 +69,7 @@ from mjx_supportfield.types import FAR
 from mjx_supportfield.types import SUPPORT_FIELD
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
 
 wp.set_module_options({"enable_backward": False})
@@ -118,21 +120,6 @@ class Buffers:
   round_index: wp.array
   max_lanes: int = 0  # lanes a pair at most; 0: DEEP_LANES on a GPU, 1 on the CPU
   per_world: int = DEEP_PAIRS_PER_WORLD  # rows of the queue each world has to itself
-
-
-def make_buffers(nworld: int, capacity: int) -> Buffers:
-  """The queue for ``nworld`` worlds of ``capacity`` broad-phase pairs in all."""
-  rows = max(1, min(capacity, nworld * DEEP_PAIRS_PER_WORLD))
-  # rows x lanes never exceeds LANE_THREADS (_lanes), nor rows with one lane
-  lane_slots = max(rows, LANE_THREADS)
-  return Buffers(count=wp.zeros(2, dtype=int), world_count=wp.zeros(nworld, dtype=int), pair=wp.zeros(rows, dtype=int),
-                 result=wp.zeros(rows, dtype=wp.vec4), pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
-                 along=wp.zeros(rows, dtype=float), lane_best=wp.zeros(lane_slots, dtype=wp.vec4),
-                 lane_index=wp.zeros(lane_slots, dtype=int), walk_cur=wp.zeros((2, 2 * rows), dtype=wp.vec4),
-                 walk_live=wp.zeros((2, 2 * rows), dtype=int),
-                 round_best=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=wp.vec4),
-                 round_index=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=int),
-                 per_world=DEEP_PAIRS_PER_WORLD)  # read here, not at import: tests lower it
 
 
 @wp.struct
@@ -784,64 +771,90 @@ def deep_kernels(mode: int) -> SimpleNamespace:
   return SimpleNamespace(faces=deep_faces, round=deep_round, edges=deep_edges, finish=deep_finish)
 
 
-def launch(c, m, d, pairs, b: Buffers, narrow, warm: warmstart.WarmCache, quota: ContactQuota) -> None:
-  """The deep answers the MPR kernel queued, checked (``c``: the Collider; ``pairs``: the broad
-  phase's buffers; ``narrow``: the narrow phase's, whose multi-contact queue the checked pairs
-  join)."""
-  opt = c.options
-  if not c.mpr_types or opt.narrowphase == "gjk":
-    return
-  kernels = deep_kernels(c.support_mode)
-  nthread = max(1, min(b.pair.shape[0], GRID_THREADS))
-  max_lanes = b.max_lanes or (DEEP_LANES if d.nacon.device.is_cuda else 1)
-  lane_threads = LANE_THREADS if max_lanes > 1 else nthread
-  geometry = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat, c.mesh_support,
-              b.count, b.pair, b.result, b.band, b.along]
-  params = [m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
-            m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
-            m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-            m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat]
 
-  def check():
-    wp.launch(
-      kernels.faces,
-      dim=lane_threads,
-      inputs=params + [c.mesh_support, b.count, b.pair, b.result, pairs.pair, pairs.pairid, pairs.pair_worldid,
-                       lane_threads, max_lanes],
-      outputs=[b.band, b.along, b.lane_best, b.lane_index],
-    )
-    for rnd in range(EDGE_ROUNDS):
+
+
+class DeepPairs:
+  """The deep-pair check: what it reads of the model, its per-Data queue, and the step's launches
+  (the stage contract: docs/architecture.md)."""
+
+  def __init__(self, options: Options, support_mode: SupportMode, mesh_support: MeshSupport, mpr_types: tuple):
+    self.options, self.support_mode, self.mesh_support = options, support_mode, mesh_support
+    self.mpr_types = mpr_types  # no MPR pair, no deep answer to check
+
+  def make_buffers(self, d, st) -> Buffers:
+    """The queue for Data ``d``'s worlds, of as many pairs as the broad phase lists."""
+    nworld, capacity = d.nworld, st.broad.capacity
+    rows = max(1, min(capacity, nworld * DEEP_PAIRS_PER_WORLD))
+    # rows x lanes never exceeds LANE_THREADS (_lanes), nor rows with one lane
+    lane_slots = max(rows, LANE_THREADS)
+    return Buffers(count=wp.zeros(2, dtype=int), world_count=wp.zeros(nworld, dtype=int), pair=wp.zeros(rows, dtype=int),
+                   result=wp.zeros(rows, dtype=wp.vec4), pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
+                   along=wp.zeros(rows, dtype=float), lane_best=wp.zeros(lane_slots, dtype=wp.vec4),
+                   lane_index=wp.zeros(lane_slots, dtype=int), walk_cur=wp.zeros((2, 2 * rows), dtype=wp.vec4),
+                   walk_live=wp.zeros((2, 2 * rows), dtype=int),
+                   round_best=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=wp.vec4),
+                   round_index=wp.zeros((2, max(2 * rows, LANE_THREADS)), dtype=int),
+                   per_world=DEEP_PAIRS_PER_WORLD)  # read here, not at import: tests lower it
+
+  def launch(self, m, d, st) -> None:
+    """The deep answers the MPR kernel queued, checked; the checked pairs join the narrow phase's
+    multi-contact queue."""
+    pairs, b, narrow, warm, quota = st.broad, st.deep, st.narrow, st.warm, st.quota.quota
+    opt = self.options
+    if not self.mpr_types or opt.narrowphase == "gjk":
+      return
+    kernels = deep_kernels(self.support_mode)
+    nthread = max(1, min(b.pair.shape[0], GRID_THREADS))
+    max_lanes = b.max_lanes or (DEEP_LANES if d.nacon.device.is_cuda else 1)
+    lane_threads = LANE_THREADS if max_lanes > 1 else nthread
+    geometry = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat, self.mesh_support,
+                b.count, b.pair, b.result, b.band, b.along]
+    params = [m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
+              m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
+              m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+              m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat]
+
+    def check():
       wp.launch(
-        kernels.round,
+        kernels.faces,
         dim=lane_threads,
-        inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.lane_best, b.lane_index, rnd],
-        outputs=[b.walk_cur, b.walk_live, b.round_best, b.round_index],
+        inputs=params + [self.mesh_support, b.count, b.pair, b.result, pairs.pair, pairs.pairid, pairs.pair_worldid,
+                         lane_threads, max_lanes],
+        outputs=[b.band, b.along, b.lane_best, b.lane_index],
       )
-    last = (EDGE_ROUNDS - 1) % 2
-    wp.launch(
-      kernels.edges,
-      dim=lane_threads,
-      inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.round_best[last],
-                         b.round_index[last]],
-      outputs=[b.lane_best, b.lane_index],
-    )
-    wp.launch(
-      kernels.finish,
-      dim=nthread,
-      inputs=params + [d.naconmax, c.mesh_support,
-        settings_of(opt), opt.mpr_pair_contacts,
-        opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
-        b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,
-        pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
-      ],
-      outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
-               narrow.patch_pos] + contact_outputs(d),
-    )
+      for rnd in range(EDGE_ROUNDS):
+        wp.launch(
+          kernels.round,
+          dim=lane_threads,
+          inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.lane_best, b.lane_index, rnd],
+          outputs=[b.walk_cur, b.walk_live, b.round_best, b.round_index],
+        )
+      last = (EDGE_ROUNDS - 1) % 2
+      wp.launch(
+        kernels.edges,
+        dim=lane_threads,
+        inputs=geometry + [pairs.pair, pairs.pair_worldid, lane_threads, max_lanes, b.round_best[last],
+                           b.round_index[last]],
+        outputs=[b.lane_best, b.lane_index],
+      )
+      wp.launch(
+        kernels.finish,
+        dim=nthread,
+        inputs=params + [d.naconmax, self.mesh_support,
+          settings_of(opt), opt.mpr_pair_contacts,
+          opt.mc_perturbation, opt.warm_start, warm.stamp, warm.slot_stamp, warm.slot_key,
+          b.count, b.pair, b.result, b.pos, b.along, lane_threads, max_lanes, b.lane_best, b.lane_index,
+          pairs.pair, pairs.pairid, pairs.pair_worldid, nthread, quota,
+        ],
+        outputs=[warm.slot_value, warm.slot_checked, narrow.patch_count, narrow.patch_pair, narrow.patch_result,
+                 narrow.patch_pos] + contact_outputs(d),
+      )
 
-  # in a graph, the check's launches are skipped on the device when no answer was queued (most
-  # steps of most scenes), as MuJoCo Warp gates its own launches; outside one, a host-side test
-  # would cost a synchronization a step, more than the launches that exit at once
-  if m.opt.graph_conditional and d.nacon.device.is_capturing:
-    wp.capture_if(b.count, on_true=check)
-  else:
-    check()
+    # in a graph, the check's launches are skipped on the device when no answer was queued (most
+    # steps of most scenes), as MuJoCo Warp gates its own launches; outside one, a host-side test
+    # would cost a synchronization a step, more than the launches that exit at once
+    if m.opt.graph_conditional and d.nacon.device.is_capturing:
+      wp.capture_if(b.count, on_true=check)
+    else:
+      check()

@@ -56,8 +56,8 @@ more than MAX_CELLS cells keeps the cells nearest its centre and sets ``Overflow
 (with a printed warning unless ``m.opt.warn_overflow`` clears it).
 
 This module owns the heightfield stage's kernels (built for one support mode by ``stage_kernels``),
-its install-time check (``check_model``), its per-Data buffers (``Buffers``, ``make_buffers``) and
-its host entry, ``launch``.
+its install-time check (``check_model``), its per-Data buffers (``Buffers``) and its stage class,
+``Heightfield``.
 Each pair's window of cells and its jobs (device functions) are hfield_window.py's; the cells'
 geometry (vertices, prisms, features, the keep-or-drop tests) is hfield_cells.py's.
 """
@@ -84,11 +84,13 @@ from mjx_supportfield.launch.contact_quota import ContactQuota
 from mjx_supportfield.launch.contact_quota import contact_outputs
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
+from mjx_supportfield.options import Options
 from mjx_supportfield.stages.candidates import write_candidates
 from mjx_supportfield.stages.hfield_cells import heightfield
 from mjx_supportfield.stages.hfield_closed_form import closed_form
 from mjx_supportfield.stages.hfield_closed_form import hfield_closed_form
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
 from mjx_supportfield.stages.hfield_window import (
   MAX_CELLS,
@@ -559,111 +561,127 @@ class Buffers:
   epa: tuple  # (vert, vert_index, face, face_pr, face_norm2, horizon), ccd_rows rows each
 
 
-def make_buffers(c, nworld: int) -> Buffers:
-  """The heightfield stage's buffers for ``nworld`` worlds (``c``: the Collider)."""
-  npair = max(1, nworld * c.hfield_pairs_per_world)
-  nmpr = npair * c.options.hfield_mprs_per_pair if c.hfield_pairs_per_world else 1
-  rows = min(max(nmpr, npair), CCD_THREADS) if c.has_hfield_pairs and c.hfield_ccd else 1
-  # sized as MuJoCo Warp's collision_convex sizes its EPA memory
-  nvert = 10 + 2 * c.hfield_ccd_iterations
-  nface = 6 + MJ_MAX_EPAFACES * c.hfield_ccd_iterations
-  return Buffers(
-    ccd_rows=rows,
-    epa=(wp.empty((rows, nvert), dtype=wp.vec3), wp.empty((rows, nvert), dtype=int), wp.empty((rows, nface), dtype=int),
-         wp.empty((rows, nface), dtype=wp.vec3), wp.empty((rows, nface), dtype=float),
-         wp.empty((rows, MJ_MAX_EPAHORIZON), dtype=int)),
-    count=wp.zeros(COUNT_CCD_AS_MPR + 1, dtype=int),
-    kind_next=wp.zeros(NKIND, dtype=int),
-    order=wp.zeros(nmpr, dtype=int),
-    pair=wp.zeros(npair, dtype=TerrainPair),
-    job=wp.zeros(nmpr, dtype=wp.vec2i),
-    answer=wp.zeros(nmpr, dtype=wp.vec4),
-    normal=wp.zeros(nmpr, dtype=wp.vec3),
-  )
 
 
-def prism_ccd(c, m, b: Buffers) -> PrismCcd:
-  """The model's meshes, MuJoCo's GJK/EPA options (MuJoCo C's ccd_iterations for GJK and EPA, as
-  MuJoCo Warp's heightfield kernel runs them) and the EPA memory of ``b``, for the kernels."""
-  ccd_in = PrismCcd()
-  for field in ("vertadr", "vertnum", "graphadr", "vert", "graph", "polynum", "polyadr", "polynormal", "polyvertadr",
-                "polyvertnum", "polyvert", "polymapadr", "polymapnum", "polymap"):
-    setattr(ccd_in, "mesh_" + field, getattr(m, "mesh_" + field))
-  ccd_in.tolerance = m.opt.ccd_tolerance
-  ccd_in.iterations = c.hfield_ccd_iterations
-  ccd_in.epa_iterations = c.hfield_ccd_iterations
-  ccd_in.vert, ccd_in.vert_index, ccd_in.face, ccd_in.face_pr, ccd_in.face_norm2, ccd_in.horizon = b.epa
-  return ccd_in
 
+class Heightfield:
+  """The heightfield stage: what install found of the model's terrain pairs, the per-Data buffers,
+  and the step's launches (the stage contract: docs/architecture.md)."""
 
-def launch(c, m, d, pairs, b: Buffers, quota: ContactQuota):
-  """Heightfield - convex pairs of one step: windows and MPR queue, the queue grouped by kind,
-  the queued MPRs, then the contacts (``c``: the Collider; ``pairs``: the broad phase's buffers)."""
-  if not c.has_hfield_pairs:
-    return
-  opt = c.options
-  nthread = max(1, min(pairs.capacity, GRID_THREADS))
-  kernels = stage_kernels(c.support_mode)
-  warn = int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD)))
-  hfield = [m.hfield_size, m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data]
-  wp.launch(
-    kernels.jobs,
-    dim=nthread,
-    inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_margin, m.geom_gap] + hfield
-    + [m.pair_margin, m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, pairs.npair, pairs.pair,
-       pairs.pairid, pairs.pair_worldid, 2, nthread],
-    outputs=[d.overflow, b.count, b.pair, b.job],
-  )
-  nthread_pair = max(1, min(b.pair.shape[0], GRID_THREADS))
-  wp.launch(kernels.kind_start, dim=1, inputs=[b.count], outputs=[b.kind_next])
-  wp.launch(
-    kernels.order,
-    dim=nthread_pair,
-    inputs=[m.geom_type, pairs.pair, b.count, b.pair, b.job, nthread_pair],
-    outputs=[b.kind_next, b.order],
-  )
-  ccd_in = prism_ccd(c, m, b)
-  nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
-  wp.launch(
-    kernels.mpr,
-    dim=nthread_mpr,
-    inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
-    + [d.geom_xpos, d.geom_xmat, c.mesh_support, settings_of(opt), pairs.pair, pairs.pair_worldid, b.count,
-       b.pair, b.job, b.order, nthread_mpr],
-    outputs=[b.answer, b.normal],
-  )
-  if c.hfield_ccd:
-    wp.launch(
-      kernels.ccd,
-      dim=b.ccd_rows,
-      inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
-      + [d.geom_xpos, d.geom_xmat, pairs.pair, pairs.pair_worldid, b.pair, b.job, b.kind_next, b.order, ccd_in,
-         b.ccd_rows],
-      outputs=[d.overflow, b.answer, b.normal],
+  def __init__(self, options: Options, support_mode: SupportMode, mesh_support: MeshSupport, has_pairs: bool,
+               pairs_per_world: int, ccd: bool, closed_form: bool, ccd_iterations: int):
+    self.options, self.support_mode, self.mesh_support = options, support_mode, mesh_support
+    self.has_pairs = has_pairs  # a heightfield - convex pair in the model
+    self.pairs_per_world = pairs_per_world  # bounds the stage's pair slots
+    self.ccd = ccd  # boxes or meshes on a heightfield: their prisms by GJK/EPA (hfield_ccd)
+    self.closed_form = closed_form  # spheres or capsules on a heightfield: hfield_closed_form
+    self.ccd_iterations = ccd_iterations  # MuJoCo C's ccd_iterations, for GJK and EPA
+
+  def make_buffers(self, d, st) -> Buffers:
+    """The stage's buffers for Data ``d``."""
+    nworld = d.nworld
+    npair = max(1, nworld * self.pairs_per_world)
+    nmpr = npair * self.options.hfield_mprs_per_pair if self.pairs_per_world else 1
+    rows = min(max(nmpr, npair), CCD_THREADS) if self.has_pairs and self.ccd else 1
+    # sized as MuJoCo Warp's collision_convex sizes its EPA memory
+    nvert = 10 + 2 * self.ccd_iterations
+    nface = 6 + MJ_MAX_EPAFACES * self.ccd_iterations
+    return Buffers(
+      ccd_rows=rows,
+      epa=(wp.empty((rows, nvert), dtype=wp.vec3), wp.empty((rows, nvert), dtype=int), wp.empty((rows, nface), dtype=int),
+           wp.empty((rows, nface), dtype=wp.vec3), wp.empty((rows, nface), dtype=float),
+           wp.empty((rows, MJ_MAX_EPAHORIZON), dtype=int)),
+      count=wp.zeros(COUNT_CCD_AS_MPR + 1, dtype=int),
+      kind_next=wp.zeros(NKIND, dtype=int),
+      order=wp.zeros(nmpr, dtype=int),
+      pair=wp.zeros(npair, dtype=TerrainPair),
+      job=wp.zeros(nmpr, dtype=wp.vec2i),
+      answer=wp.zeros(nmpr, dtype=wp.vec4),
+      normal=wp.zeros(nmpr, dtype=wp.vec3),
     )
-  wp.launch(
-    contacts_kernel(c.support_mode, c.hfield_ccd),
-    dim=nthread_pair,
-    inputs=[
-      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-      m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
-      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-      m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, settings_of(opt),
-      opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.pair, b.job,
-      b.answer, b.normal, ccd_in, nthread_pair, quota,
-    ],
-    outputs=[d.overflow, b.count] + contact_outputs(d),
-  )
-  if c.hfield_closed_form:
+
+  def prism_ccd(self, m, b: Buffers) -> PrismCcd:
+    """The model's meshes, MuJoCo's GJK/EPA options (MuJoCo C's ccd_iterations for GJK and EPA, as
+    MuJoCo Warp's heightfield kernel runs them) and the EPA memory of ``b``, for the kernels."""
+    ccd_in = PrismCcd()
+    for field in ("vertadr", "vertnum", "graphadr", "vert", "graph", "polynum", "polyadr", "polynormal", "polyvertadr",
+                  "polyvertnum", "polyvert", "polymapadr", "polymapnum", "polymap"):
+      setattr(ccd_in, "mesh_" + field, getattr(m, "mesh_" + field))
+    ccd_in.tolerance = m.opt.ccd_tolerance
+    ccd_in.iterations = self.ccd_iterations
+    ccd_in.epa_iterations = self.ccd_iterations
+    ccd_in.vert, ccd_in.vert_index, ccd_in.face, ccd_in.face_pr, ccd_in.face_norm2, ccd_in.horizon = b.epa
+    return ccd_in
+
+  def launch(self, m, d, st) -> None:
+    """Heightfield - convex pairs of one step: windows and MPR queue, the queue grouped by kind,
+    the queued MPRs, then the contacts."""
+    pairs, b, quota = st.broad, st.hfield, st.quota.quota
+    if not self.has_pairs:
+      return
+    opt = self.options
+    nthread = max(1, min(pairs.capacity, GRID_THREADS))
+    kernels = stage_kernels(self.support_mode)
+    warn = int(bool(int(m.opt.warn_overflow) & int(OverflowType.HFIELD)))
+    hfield = [m.hfield_size, m.hfield_nrow, m.hfield_ncol, m.hfield_adr, m.hfield_data]
     wp.launch(
-      hfield_closed_form,
+      kernels.jobs,
+      dim=nthread,
+      inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_margin, m.geom_gap] + hfield
+      + [m.pair_margin, m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, pairs.npair, pairs.pair,
+         pairs.pairid, pairs.pair_worldid, 2, nthread],
+      outputs=[d.overflow, b.count, b.pair, b.job],
+    )
+    nthread_pair = max(1, min(b.pair.shape[0], GRID_THREADS))
+    wp.launch(kernels.kind_start, dim=1, inputs=[b.count], outputs=[b.kind_next])
+    wp.launch(
+      kernels.order,
+      dim=nthread_pair,
+      inputs=[m.geom_type, pairs.pair, b.count, b.pair, b.job, nthread_pair],
+      outputs=[b.kind_next, b.order],
+    )
+    ccd_in = self.prism_ccd(m, b)
+    nthread_mpr = max(1, min(b.job.shape[0], GRID_THREADS))
+    wp.launch(
+      kernels.mpr,
+      dim=nthread_mpr,
+      inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
+      + [d.geom_xpos, d.geom_xmat, self.mesh_support, settings_of(opt), pairs.pair, pairs.pair_worldid, b.count,
+         b.pair, b.job, b.order, nthread_mpr],
+      outputs=[b.answer, b.normal],
+    )
+    if self.ccd:
+      wp.launch(
+        kernels.ccd,
+        dim=b.ccd_rows,
+        inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
+        + [d.geom_xpos, d.geom_xmat, pairs.pair, pairs.pair_worldid, b.pair, b.job, b.kind_next, b.order, ccd_in,
+           b.ccd_rows],
+        outputs=[d.overflow, b.answer, b.normal],
+      )
+    wp.launch(
+      contacts_kernel(self.support_mode, self.ccd),
       dim=nthread_pair,
       inputs=[
         m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
         m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
         m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-        m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, opt.max_contacts_per_pair,
-        opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.count, b.pair, nthread_pair, quota,
+        m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
+        opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.pair, b.job,
+        b.answer, b.normal, ccd_in, nthread_pair, quota,
       ],
-      outputs=contact_outputs(d),
+      outputs=[d.overflow, b.count] + contact_outputs(d),
     )
+    if self.closed_form:
+      wp.launch(
+        hfield_closed_form,
+        dim=nthread_pair,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
+          m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
+          m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, opt.max_contacts_per_pair,
+          opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.count, b.pair, nthread_pair, quota,
+        ],
+        outputs=contact_outputs(d),
+      )

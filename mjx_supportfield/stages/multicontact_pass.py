@@ -5,7 +5,7 @@ Face pairs first (face_pair_kernel): a pair touching face on feature along its n
 clipped (manifold_kernel, faceclip.py's device functions); the rest are tilted (tilt_kernel in
 closed form, tilt_mpr_kernel by MPR, multicontact.py's device functions) and patch_kernel
 writes each tilted pair's contacts. This module owns those kernels (built for one support mode
-by ``pass_kernels``) and their host entry, ``launch_multicontact``; their queues are the narrow
+by ``pass_kernels``) and their stage class, ``MultiContactPass``; their queues are the narrow
 phase's per-Data buffers (``narrowphase.Buffers``), as the MPR kernel fills them.
 """
 
@@ -35,9 +35,11 @@ from mjx_supportfield.launch.contact_quota import contact_outputs
 from mjx_supportfield.launch.contact_quota import write_row
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
+from mjx_supportfield.options import Options
 from mjx_supportfield.stages.narrowphase import Buffers
 from mjx_supportfield.stages.narrowphase import write_pair_contacts
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
 
 wp.set_module_options({"enable_backward": False})
@@ -500,69 +502,84 @@ def pass_kernels(mode: int) -> SimpleNamespace:
                          tilt_mpr=tilt_mpr_kernel, patch=patch_kernel)
 
 
-def launch_multicontact(c, m, d, pairs, b: Buffers, quota: ContactQuota):
-  """The multi-contact pass over the pairs the MPR kernel queued: face pairs, face clipping, the
-  tilts and their MPRs, then each tilted pair's contacts (``c``: the Collider; ``pairs``: the
-  broad phase's buffers)."""
-  if not c.mpr_types:
-    return
-  opt = c.options
-  kernels = pass_kernels(c.support_mode)
-  nthread = max(1, min(pairs.capacity, GRID_THREADS))
-  nthread_tilt = max(1, min(b.tilt_result.shape[0] * b.tilt_result.shape[1], GRID_THREADS))
-  pair, pairid, pair_worldid = pairs.pair, pairs.pairid, pairs.pair_worldid
-  wp.launch(
-    kernels.face_pair,
-    dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-      m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support,
-      pair, pairid, pair_worldid, b.patch_count, b.patch_pair, b.patch_result, nthread,
-    ],
-    outputs=[b.face_count, b.face_queue, b.face_faces, b.tilt_pair_count, b.tilt_pair],
-  )
-  wp.launch(
-    kernels.manifold,
-    dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
-      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-      m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support,
-      opt.max_contacts_per_pair, opt.mc_tolerance, pair, pairid, pair_worldid,
-      b.patch_pair, b.patch_result, b.patch_pos, b.face_count, b.face_queue, b.face_faces, nthread,
-      quota,
-    ],
-    outputs=[b.tilt_pair_count, b.tilt_pair] + contact_outputs(d),
-  )
-  tilt_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-                m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support]
-  wp.launch(
-    kernels.tilt,
-    dim=nthread_tilt,
-    inputs=tilt_model + [opt.mc_perturbation, pair, pairid, pair_worldid, b.tilt_pair_count,
-                         b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos, nthread_tilt],
-    outputs=[b.tilt_result, b.tilt_count, b.tilt_queue],
-  )
-  wp.launch(
-    kernels.tilt_mpr,
-    dim=nthread_tilt,
-    inputs=tilt_model + [settings_of(opt), opt.mc_perturbation,
-                         pair, pairid, pair_worldid, b.tilt_pair, b.patch_pair, b.patch_result,
-                         b.patch_pos, b.tilt_count, b.tilt_queue, nthread_tilt],
-    outputs=[b.tilt_result],
-  )
-  wp.launch(
-    kernels.patch,
-    dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-      m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
-      m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-      m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, settings_of(opt),
-      opt.max_contacts_per_pair, opt.mc_perturbation, opt.mc_tolerance, pair,
-      pairid, pair_worldid, b.tilt_pair_count, b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos,
-      b.tilt_result, nthread, quota,
-    ],
-    outputs=contact_outputs(d),
-  )
+
+
+
+class MultiContactPass:
+  """The multi-contact pass: what it reads of the model and the step's launches; its queues are
+  the narrow phase's buffers, which the MPR kernel fills (the stage contract: docs/architecture.md)."""
+
+  def __init__(self, options: Options, support_mode: SupportMode, mesh_support: MeshSupport, mpr_types: tuple):
+    self.options, self.support_mode, self.mesh_support = options, support_mode, mesh_support
+    self.mpr_types = mpr_types  # no MPR pair, nothing queued
+
+  def make_buffers(self, d, st) -> None:
+    """None: the pass works in the narrow phase's buffers."""
+    return None
+
+  def launch(self, m, d, st) -> None:
+    """The multi-contact pass over the pairs the MPR kernel queued: face pairs, face clipping, the
+    tilts and their MPRs, then each tilted pair's contacts."""
+    pairs, b, quota = st.broad, st.narrow, st.quota.quota
+    if not self.mpr_types:
+      return
+    opt = self.options
+    kernels = pass_kernels(self.support_mode)
+    nthread = max(1, min(pairs.capacity, GRID_THREADS))
+    nthread_tilt = max(1, min(b.tilt_result.shape[0] * b.tilt_result.shape[1], GRID_THREADS))
+    pair, pairid, pair_worldid = pairs.pair, pairs.pairid, pairs.pair_worldid
+    wp.launch(
+      kernels.face_pair,
+      dim=nthread,
+      inputs=[
+        m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+        m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support,
+        pair, pairid, pair_worldid, b.patch_count, b.patch_pair, b.patch_result, nthread,
+      ],
+      outputs=[b.face_count, b.face_queue, b.face_faces, b.tilt_pair_count, b.tilt_pair],
+    )
+    wp.launch(
+      kernels.manifold,
+      dim=nthread,
+      inputs=[
+        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+        m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
+        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
+        opt.max_contacts_per_pair, opt.mc_tolerance, pair, pairid, pair_worldid,
+        b.patch_pair, b.patch_result, b.patch_pos, b.face_count, b.face_queue, b.face_faces, nthread,
+        quota,
+      ],
+      outputs=[b.tilt_pair_count, b.tilt_pair] + contact_outputs(d),
+    )
+    tilt_model = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                  m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support]
+    wp.launch(
+      kernels.tilt,
+      dim=nthread_tilt,
+      inputs=tilt_model + [opt.mc_perturbation, pair, pairid, pair_worldid, b.tilt_pair_count,
+                           b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos, nthread_tilt],
+      outputs=[b.tilt_result, b.tilt_count, b.tilt_queue],
+    )
+    wp.launch(
+      kernels.tilt_mpr,
+      dim=nthread_tilt,
+      inputs=tilt_model + [settings_of(opt), opt.mc_perturbation,
+                           pair, pairid, pair_worldid, b.tilt_pair, b.patch_pair, b.patch_result,
+                           b.patch_pos, b.tilt_count, b.tilt_queue, nthread_tilt],
+      outputs=[b.tilt_result],
+    )
+    wp.launch(
+      kernels.patch,
+      dim=nthread,
+      inputs=[
+        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+        m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
+        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
+        opt.max_contacts_per_pair, opt.mc_perturbation, opt.mc_tolerance, pair,
+        pairid, pair_worldid, b.tilt_pair_count, b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos,
+        b.tilt_result, nthread, quota,
+      ],
+      outputs=contact_outputs(d),
+    )

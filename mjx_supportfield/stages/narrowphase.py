@@ -6,8 +6,8 @@ CUDA graph.
 
 This module owns the convex narrow phase's kernels (sift, analytic, MPR / GJK), the writer of
 an MPR pair's contacts (``write_pair_contacts``), the per-Data buffers of the narrow phase and
-of the multi-contact pass that follows it (``Buffers``, ``make_buffers``: the MPR kernel fills
-the multi-contact queues) and its host entry, ``launch``. Which queue a pair goes to is
+of the multi-contact pass that follows it (``Buffers``: the MPR kernel fills the multi-contact
+queues) and its stage class, ``NarrowPhase``. Which queue a pair goes to is
 routing.py's; the multi-contact kernels are multicontact_pass.py's.
 """
 
@@ -45,6 +45,7 @@ from mjx_supportfield.launch.contact_quota import rows
 from mjx_supportfield.launch.contact_quota import write_row
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
+from mjx_supportfield.options import Options
 from mjx_supportfield.stages import warmstart
 from mjx_supportfield.stages.routing import NQUEUE
 from mjx_supportfield.stages.routing import QUEUE_ANALYTIC
@@ -54,6 +55,7 @@ from mjx_supportfield.stages.routing import QUEUE_MPR
 from mjx_supportfield.stages.routing import PairQueues
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
 
 # the factories' module="unique" kernels take Warp's global options, not this module's:
@@ -664,86 +666,103 @@ class Buffers:
   tilt_queue: wp.array  # their flat indices into tilt_result
 
 
-def make_buffers(c, nworld: int, capacity: int) -> Buffers:
-  """The narrow phase's buffers for ``nworld`` worlds of ``capacity`` pairs in all (``c``: the Collider)."""
-  ntilt_pair = min(capacity, nworld * TILT_PAIRS_PER_WORLD)
-  b = Buffers(
-    queue_count=wp.zeros(NQUEUE, dtype=int),
-    queue_pair=wp.zeros((NQUEUE, capacity), dtype=int),
-    queues=PairQueues(),
-    patch_count=wp.zeros(1, dtype=int),
-    patch_pair=wp.zeros(capacity, dtype=int),
-    patch_result=wp.zeros(capacity, dtype=wp.vec4),
-    patch_pos=wp.zeros(capacity, dtype=wp.vec3),
-    face_count=wp.zeros(1, dtype=int),
-    face_queue=wp.zeros(capacity, dtype=int),
-    face_faces=wp.zeros(capacity, dtype=wp.vec3i),
-    tilt_pair_count=wp.zeros(1, dtype=int),
-    tilt_pair=wp.zeros(capacity, dtype=int),
-    tilt_result=wp.zeros((ntilt_pair, 2 * NPERTURB), dtype=wp.vec4),
-    tilt_count=wp.zeros(1, dtype=int),
-    tilt_queue=wp.zeros(ntilt_pair * 2 * NPERTURB, dtype=int),
-  )
-  q = b.queues
-  q.pair_queue_type, q.geom_nonconvex = c.pair_queue_type, c.geom_nonconvex
-  q.count, q.pair = b.queue_count, b.queue_pair
-  return b
 
 
-def launch(c, m, d, pairs, b: Buffers, warm: warmstart.WarmCache, quota: ContactQuota, deep):
-  """The convex pairs of one step: MPR's candidates sifted, the analytic pairs, then MPR's and
-  GJK's pairs (``c``: the Collider; ``pairs``: the broad phase's buffers; ``deep``: the
-  deep-pair queue, deep_pairs.Buffers, that MPR's suspicious answers go to)."""
-  nthread = max(1, min(pairs.capacity, GRID_THREADS))
-  queue_inputs = [b.queue_count, b.queue_pair, pairs.pair, pairs.pairid, pairs.pair_worldid]  # + the launch's threads
-  # analytic pairs are cheap: as many threads as contacts fit, as stock MuJoCo Warp launches them
-  nthread_analytic = max(1, min(nthread, d.naconmax))
-  opt = c.options
-  mode = c.support_mode
-  gjk_all = opt.narrowphase == "gjk"
-  if c.mpr_types and not gjk_all:
-    wp.launch(
-      sift_mpr_pairs(mode),
-      dim=nthread,
-      inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
-              m.pair_gap, d.geom_xpos, d.geom_xmat, c.mesh_support, pairs.pair, pairs.pairid, pairs.pair_worldid,
-              nthread],
-      outputs=[b.queues],
-    )
-  if c.analytic_types:
-    wp.launch(
-      analytic_kernel(c.analytic_types, bool(opt.contacts_per_world)),
-      dim=nthread_analytic,
-      inputs=[
-        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-        m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.mesh_vertadr, m.mesh_vertnum,
-        m.mesh_graphadr, m.mesh_vert, m.mesh_graph, m.mesh_polynum, m.mesh_polyadr, m.mesh_polynormal,
-        m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
-        m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
-        m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
-      ] + queue_inputs + [nthread_analytic, quota],
-      outputs=contact_outputs(d),
-    )
-  if not c.mpr_types:
-    return
-  # MPR's pairs, then GJK's (all with narrowphase="gjk", else those with a sphere or capsule)
-  for use_gjk in (False, True):
-    if (use_gjk and not (gjk_all or c.has_core_pairs)) or (not use_gjk and gjk_all):
-      continue
-    wp.launch(
-      convex_kernel(use_gjk, mode),
-      dim=nthread,
-      inputs=[
-        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
-        m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
-        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, c.mesh_support, settings_of(opt),
-        opt.mpr_pair_contacts, opt.mc_perturbation,
-        c.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
-        warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,
-        DEEP_RECHECK_CALLS, deep.per_world,
-      ] + queue_inputs + [nthread, quota],
-      outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos, deep.count, deep.world_count, deep.pair,
-               deep.result, deep.pos] + contact_outputs(d),
-    )
 
+class NarrowPhase:
+  """The convex narrow phase: the pair types install found and the model-time data its kernels
+  read, the per-Data buffers (its queues and the multi-contact queues), and the step's launches
+  (the stage contract: docs/architecture.md)."""
+
+  def __init__(self, options: Options, support_mode: SupportMode, mesh_support: MeshSupport, mesh_sdf: MeshSdf,
+               analytic_types: tuple, mpr_types: tuple, pair_queue_type: wp.array, geom_nonconvex: wp.array):
+    self.options, self.support_mode = options, support_mode
+    self.mesh_support, self.mesh_sdf = mesh_support, mesh_sdf
+    self.analytic_types, self.mpr_types = analytic_types, mpr_types  # the model's pair types, by kernel
+    self.pair_queue_type = pair_queue_type  # per pair of geom types: its queue (routing.pair_queue_table)
+    self.geom_nonconvex = geom_nonconvex  # per geom: 1 for a mesh collided through its triangles
+    # pairs with a sphere or a capsule take GJK on their core in a kernel of their own
+    self.has_core_pairs = any(t in (GeomType.SPHERE, GeomType.CAPSULE) for pair in mpr_types for t in pair)
+
+  def make_buffers(self, d, st) -> Buffers:
+    """The narrow phase's buffers for Data ``d`` (as many pairs as the broad phase lists)."""
+    nworld, capacity = d.nworld, st.broad.capacity
+    ntilt_pair = min(capacity, nworld * TILT_PAIRS_PER_WORLD)
+    b = Buffers(
+      queue_count=wp.zeros(NQUEUE, dtype=int),
+      queue_pair=wp.zeros((NQUEUE, capacity), dtype=int),
+      queues=PairQueues(),
+      patch_count=wp.zeros(1, dtype=int),
+      patch_pair=wp.zeros(capacity, dtype=int),
+      patch_result=wp.zeros(capacity, dtype=wp.vec4),
+      patch_pos=wp.zeros(capacity, dtype=wp.vec3),
+      face_count=wp.zeros(1, dtype=int),
+      face_queue=wp.zeros(capacity, dtype=int),
+      face_faces=wp.zeros(capacity, dtype=wp.vec3i),
+      tilt_pair_count=wp.zeros(1, dtype=int),
+      tilt_pair=wp.zeros(capacity, dtype=int),
+      tilt_result=wp.zeros((ntilt_pair, 2 * NPERTURB), dtype=wp.vec4),
+      tilt_count=wp.zeros(1, dtype=int),
+      tilt_queue=wp.zeros(ntilt_pair * 2 * NPERTURB, dtype=int),
+    )
+    q = b.queues
+    q.pair_queue_type, q.geom_nonconvex = self.pair_queue_type, self.geom_nonconvex
+    q.count, q.pair = b.queue_count, b.queue_pair
+    return b
+
+  def launch(self, m, d, st) -> None:
+    """The convex pairs of one step: MPR's candidates sifted, the analytic pairs, then MPR's and
+    GJK's pairs; MPR's suspicious answers go to the deep-pair queue."""
+    pairs, b, warm, quota, deep = st.broad, st.narrow, st.warm, st.quota.quota, st.deep
+    nthread = max(1, min(pairs.capacity, GRID_THREADS))
+    queue_inputs = [b.queue_count, b.queue_pair, pairs.pair, pairs.pairid, pairs.pair_worldid]  # + the launch's threads
+    # analytic pairs are cheap: as many threads as contacts fit, as stock MuJoCo Warp launches them
+    nthread_analytic = max(1, min(nthread, d.naconmax))
+    opt = self.options
+    mode = self.support_mode
+    gjk_all = opt.narrowphase == "gjk"
+    if self.mpr_types and not gjk_all:
+      wp.launch(
+        sift_mpr_pairs(mode),
+        dim=nthread,
+        inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
+                m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, pairs.pair, pairs.pairid, pairs.pair_worldid,
+                nthread],
+        outputs=[b.queues],
+      )
+    if self.analytic_types:
+      wp.launch(
+        analytic_kernel(self.analytic_types, bool(opt.contacts_per_world)),
+        dim=nthread_analytic,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.mesh_vertadr, m.mesh_vertnum,
+          m.mesh_graphadr, m.mesh_vert, m.mesh_graph, m.mesh_polynum, m.mesh_polyadr, m.mesh_polynormal,
+          m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
+          m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
+          m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
+        ] + queue_inputs + [nthread_analytic, quota],
+        outputs=contact_outputs(d),
+      )
+    if not self.mpr_types:
+      return
+    # MPR's pairs, then GJK's (all with narrowphase="gjk", else those with a sphere or capsule)
+    for use_gjk in (False, True):
+      if (use_gjk and not (gjk_all or self.has_core_pairs)) or (not use_gjk and gjk_all):
+        continue
+      wp.launch(
+        convex_kernel(use_gjk, mode),
+        dim=nthread,
+        inputs=[
+          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
+          m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
+          m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
+          m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
+          opt.mpr_pair_contacts, opt.mc_perturbation,
+          self.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
+          warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,
+          DEEP_RECHECK_CALLS, deep.per_world,
+        ] + queue_inputs + [nthread, quota],
+        outputs=[b.patch_count, b.patch_pair, b.patch_result, b.patch_pos, deep.count, deep.world_count, deep.pair,
+                 deep.result, deep.pos] + contact_outputs(d),
+      )

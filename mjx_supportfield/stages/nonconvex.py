@@ -16,7 +16,7 @@ gradient; points merge and the deepest and farthest are written (candidates.py).
 heightfields meet a non-convex mesh through its hull, which touches them at the same points.
 
 This module owns the non-convex stage's install-time data (which geoms, their SDFs) and kernel,
-and its host entry, ``launch`` (no per-Data buffers: it walks the broad phase's pair list).
+and its stage class, ``NonConvex`` (no per-Data buffers: it walks the broad phase's pair list).
 """
 
 import functools
@@ -40,6 +40,7 @@ from mjx_supportfield.geometry.support import box_corner
 from mjx_supportfield.launch.contact_quota import ContactQuota
 from mjx_supportfield.launch.contact_quota import contact_outputs
 from mjx_supportfield.launch.grid import GRID_THREADS
+from mjx_supportfield.options import Options
 from mjx_supportfield.stages.candidates import Candidates
 from mjx_supportfield.stages.candidates import add_candidate
 from mjx_supportfield.stages.candidates import empty
@@ -47,6 +48,7 @@ from mjx_supportfield.stages.candidates import write_candidates
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
 
 wp.set_module_options({"enable_backward": False})
@@ -390,23 +392,43 @@ def nonconvex_narrowphase(mode: int) -> wp.Kernel:
   return nonconvex_narrowphase
 
 
-def launch(c, m, d, pairs, quota: ContactQuota):
-  """The non-convex pairs of one step (``c``: the Collider; ``pairs``: the broad phase's buffers)."""
-  if not c.has_nonconvex_pairs:
-    return
-  opt = c.options
-  nthread = max(1, min(pairs.capacity, GRID_THREADS))
-  pair_inputs = [pairs.npair, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread]
-  wp.launch(
-    nonconvex_narrowphase(c.support_mode),
-    dim=nthread,
-    inputs=[
-      m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-      m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.mesh_vertnum,
-      c.mesh_faceadr, c.mesh_facenum, m.mesh_face, m.pair_dim, m.pair_solref, m.pair_solreffriction,
-      m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat,
-      d.naconmax, c.mesh_support, c.geom_nonconvex, c.sdfs,
-      opt.max_contacts_per_pair, opt.mc_tolerance,
-    ] + pair_inputs + [quota],
-    outputs=contact_outputs(d),
-  )
+
+
+
+class NonConvex:
+  """Non-convex meshes through their triangles' SDFs: what install built for them, and the step's
+  launch (the stage contract: docs/architecture.md)."""
+
+  def __init__(self, options: Options, support_mode: SupportMode, mesh_support: MeshSupport, has_pairs: bool,
+               geom_nonconvex: wp.array, mesh_faceadr: wp.array, mesh_facenum: wp.array, sdfs: SdfSet):
+    self.options, self.support_mode, self.mesh_support = options, support_mode, mesh_support
+    self.has_pairs = has_pairs  # a pair of the model has a mesh marked non-convex
+    self.geom_nonconvex = geom_nonconvex  # per geom: 1 for a mesh collided through its triangles
+    self.mesh_faceadr, self.mesh_facenum = mesh_faceadr, mesh_facenum
+    self.sdfs = sdfs  # the marked meshes' true SDFs and the hull SDFs
+
+  def make_buffers(self, d, st) -> None:
+    """None: one kernel, no buffers of its own."""
+    return None
+
+  def launch(self, m, d, st) -> None:
+    """The non-convex pairs of one step."""
+    pairs, quota = st.broad, st.quota.quota
+    if not self.has_pairs:
+      return
+    opt = self.options
+    nthread = max(1, min(pairs.capacity, GRID_THREADS))
+    pair_inputs = [pairs.npair, pairs.pair, pairs.pairid, pairs.pair_worldid, nthread]
+    wp.launch(
+      nonconvex_narrowphase(self.support_mode),
+      dim=nthread,
+      inputs=[
+        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
+        m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.mesh_vertnum,
+        self.mesh_faceadr, self.mesh_facenum, m.mesh_face, m.pair_dim, m.pair_solref, m.pair_solreffriction,
+        m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat,
+        d.naconmax, self.mesh_support, self.geom_nonconvex, self.sdfs,
+        opt.max_contacts_per_pair, opt.mc_tolerance,
+      ] + pair_inputs + [quota],
+      outputs=contact_outputs(d),
+    )

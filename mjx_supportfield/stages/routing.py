@@ -96,11 +96,10 @@ def pair_queue_table(present, gjk_all: bool) -> tuple:
   return analytic_types, mpr_types, queue_table
 
 
-def gives_plugin_nothing(c, m) -> bool:
+def gives_plugin_nothing(options, nxn: bool, plugin_pairs: bool, m) -> bool:
   """Whether MuJoCo Warp's own collision stage computes model ``m``'s contacts, bit for bit, with
-  less work than the plugin's (``c``: its Collider): analytic pairs only, which both run through
-  MuJoCo Warp's routines, on an nxn broad phase in both (Options.stock_for_analytic_models)."""
-  opt = c.options
-  return (opt.stock_for_analytic_models and opt.broadphase == "auto" and c.nxn and not opt.contacts_per_world
-          and not (c.mpr_types or c.has_hfield_pairs or c.has_nonconvex_pairs)
-          and m.opt.broadphase == BroadphaseType.NXN)
+  less work than the plugin's: analytic pairs only (``plugin_pairs``: a pair the plugin's own
+  kernels collide, MPR, heightfield or non-convex), which both run through MuJoCo Warp's
+  routines, on an nxn broad phase in both (Options.stock_for_analytic_models)."""
+  return (options.stock_for_analytic_models and options.broadphase == "auto" and nxn
+          and not options.contacts_per_world and not plugin_pairs and m.opt.broadphase == BroadphaseType.NXN)

@@ -23,9 +23,16 @@ if ROOT not in sys.path:
   sys.path.insert(0, ROOT)
 # install's disk cache (support fields, SDFs): the test session's own, so that tests neither read
 # nor fill the user's; subprocesses inherit it
+_USER_CACHE = os.environ.get("MJX_SUPPORTFIELD_CACHE") or os.path.join(
+  os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "mjx_supportfield")
 _CACHE = tempfile.mkdtemp(prefix="mjx_supportfield_test_cache_")
 os.environ["MJX_SUPPORTFIELD_CACHE"] = _CACHE
 atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+# files fetched once into the user's cache (robosuite's, benchmarks/robosuite_arms.py) stay in view
+if os.path.isdir(_USER_CACHE):
+  for _name in os.listdir(_USER_CACHE):
+    if _name.startswith("robosuite-"):
+      os.symlink(os.path.join(_USER_CACHE, _name), os.path.join(_CACHE, _name))
 # benchmarks/scenelib: the repository's scenes and measures (not part of the installed package)
 if os.path.join(ROOT, "benchmarks") not in sys.path:
   sys.path.insert(0, os.path.join(ROOT, "benchmarks"))

@@ -51,6 +51,8 @@ def test_a_module_not_in_the_cache_is_announced(tmp_path, monkeypatch, caplog):
   assert notes[0].startswith(f"first use on {x.device.alias}: Warp compiles kernels for the test")
   assert "test_first_use.test_a_module_not_in_the_cache_is_announced.scaled" in notes[1]
   assert "1 module compiled in" in notes[2]
+  last = first_use.compile_history()[-1]  # the same, for scripts
+  assert last["stage"] == "the test" and last["modules"] == 1 and last["seconds"] >= 0
   assert np.allclose(x.numpy(), np.float32(scale))
   assert wp_context.Module.load is LOAD and not first_use.active
 

@@ -156,8 +156,21 @@ class _Stage:
 
   def close(self):
     if self.count:
+      seconds = time.perf_counter() - self.t0
       logger.info("  %d module%s compiled in %.0f s; later runs load %s from Warp's kernel cache", self.count,
-                  "s" if self.count > 1 else "", time.perf_counter() - self.t0, "them" if self.count > 1 else "it")
+                  "s" if self.count > 1 else "", seconds, "them" if self.count > 1 else "it")
+      _HISTORY.append({"stage": self.label, "device": self.device.alias, "modules": self.count, "seconds": seconds})
+
+
+_HISTORY = []  # the stages that compiled, in order (compile_history)
+
+
+def compile_history() -> list[dict]:
+  """Each stage of this process that compiled kernel modules, in order: its label (``"install
+  (support fields and SDFs)"``, ``"MuJoCo Warp's first step"``, ``"the plugin's first collision"``,
+  a command's), the device, how many modules and the seconds from its first compile to its end
+  (``benchmarks/first_step.py`` splits a first step's time with it)."""
+  return [dict(h) for h in _HISTORY]
 
 
 class _Watch:

@@ -5,6 +5,8 @@
 pile_<n>_<p>.xml : n random convex meshes (p points each, on random ellipsoids) dropped in a
                    loose lattice onto a plane; they settle into a pile.
 primitives_<n>.xml: n mixed primitives (sphere, capsule, box, cylinder, ellipsoid) likewise.
+primitives_layers_<n>.xml: n mixed primitives dropped in three layers onto each other: a pile that
+                   rests on itself, most contacts between primitives.
 terrain_<n>.xml  : n mixed primitives and convex meshes dropped on a bumpy 64 x 64 heightfield.
 """
 
@@ -61,6 +63,30 @@ def primitives(n: int, seed: int = 0) -> str:
   return HEADER.format(name=f"primitives_{n}") + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
 
 
+def layers(side: int, nlayer: int, seed: int = 0) -> str:
+  """Mixed primitives dropped in ``nlayer`` layers of ``side`` x ``side``, each layer shifted by half
+  a cell so that its bodies land on the ones below: a pile that rests on itself, not only on the
+  floor (most pairs primitive against primitive, many of them stacked)."""
+  rng = np.random.default_rng(seed)
+  kinds = ["sphere", "capsule", "box", "cylinder", "ellipsoid"]
+  spacing = 0.085
+  bodies = []
+  for layer in range(nlayer):
+    shift = 0.5 * spacing * (layer % 2)
+    for i in range(side):
+      for j in range(side):
+        k = len(bodies)
+        kind = kinds[k % len(kinds)]
+        s = rng.uniform(0.02, 0.04, size=3)
+        size = {"sphere": f"{s[0]:.3f}", "capsule": f"{s[0]:.3f} {s[1]:.3f}", "box": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}",
+                "cylinder": f"{s[0]:.3f} {s[1]:.3f}", "ellipsoid": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"}[kind]
+        x, y, z = (i - side / 2) * spacing + shift, (j - side / 2) * spacing + shift, 0.06 + layer * 0.1
+        bodies.append(f'    <body name="b{k}" pos="{x:.3f} {y:.3f} {z:.3f}"><freejoint/>'
+                      f'<geom name="g{k}" type="{kind}" size="{size}"/></body>\n')
+  name = f"primitives_layers_{side * side * nlayer}"
+  return HEADER.format(name=name) + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
+
+
 def terrain(n: int, seed: int = 0) -> str:
   rng = np.random.default_rng(seed)
   nrow = ncol = 64
@@ -90,7 +116,8 @@ def terrain(n: int, seed: int = 0) -> str:
 def main():
   os.makedirs(HERE, exist_ok=True)
   scenes = {"pile_32_128.xml": pile(32, 128), "pile_256_128.xml": pile(256, 128), "pile_1024_128.xml": pile(1024, 128),
-            "pile_32_1024.xml": pile(32, 1024), "primitives_32.xml": primitives(32), "terrain_32.xml": terrain(32)}
+            "pile_32_1024.xml": pile(32, 1024), "primitives_32.xml": primitives(32), "primitives_layers_48.xml": layers(4, 3),
+            "terrain_32.xml": terrain(32)}
   for fname, xml in scenes.items():
     with open(os.path.join(HERE, fname), "w") as f:
       f.write(xml)

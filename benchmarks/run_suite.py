@@ -52,6 +52,7 @@ SCENES = {  # name: (path, nworlds)
   "pile_256_128": (os.path.join(HERE, "scenes", "pile_256_128.xml"), [256, 1024]),
   "pile_1024_128": (os.path.join(HERE, "scenes", "pile_1024_128.xml"), [16]),
   "primitives_32": (os.path.join(HERE, "scenes", "primitives_32.xml"), [1024, 8192]),
+  "primitives_layers_48": (os.path.join(HERE, "scenes", "primitives_layers_48.xml"), [1024, 4096, 8192]),
   "humanoid": (os.path.join(MJW_DATA, "humanoid", "humanoid.xml"), [1024, 8192]),
   "terrain_32": (os.path.join(HERE, "scenes", "terrain_32.xml"), [1024, 8192]),
 }

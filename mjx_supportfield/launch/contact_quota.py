@@ -16,12 +16,15 @@ quota and takes its rows from ``rows(per_world)``, a choice made when the kernel
 quota the routines get the arrays themselves, not fifteen views held in registers through them.
 
 This module owns the quota's kernels, its per-Data buffers (``make_buffers``) and its host entries
-(``start`` before the writers, ``pack`` after them), and names the contact fields the writers take.
+(``start`` before the writers, ``pack`` after them), and the two structs every writer takes:
+``ContactRows``, the contact arrays and counter it writes (``contact_rows``), and ``ContactMixing``,
+the model arrays its contact parameters are mixed from (``contact_mixing``, ``mixed_params``).
 """
 
 import dataclasses
 
 import warp as wp
+from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.collision_core import write_contact
 from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import vec5
@@ -49,6 +52,67 @@ class ContactQuota:
   world_ncon: wp.array(dtype=int)  # contacts each world found (those beyond per_world included)
 
 
+@wp.struct
+class ContactRows:
+  """What the plugin's contact writers write: d.contact's arrays (WRITTEN_CONTACT_FIELDS) and
+  d.nacon, one kernel argument (contact_rows). Unpacked where MuJoCo Warp's write_contact takes
+  them, as the row views of a world (world_rows) or the arrays themselves (shared_rows)."""
+
+  dist: wp.array(dtype=float)
+  pos: wp.array(dtype=wp.vec3)
+  frame: wp.array(dtype=wp.mat33)
+  includemargin: wp.array(dtype=float)
+  friction: wp.array(dtype=vec5)
+  solref: wp.array(dtype=wp.vec2)
+  solreffriction: wp.array(dtype=wp.vec2)
+  solimp: wp.array(dtype=vec5)
+  dim: wp.array(dtype=int)
+  geom: wp.array(dtype=wp.vec2i)
+  efc_address: wp.array2d(dtype=int)
+  worldid: wp.array(dtype=int)
+  type: wp.array(dtype=int)
+  geomcollisionid: wp.array(dtype=int)
+  adhesion: wp.array(dtype=float)
+  nacon: wp.array(dtype=int)
+
+
+@wp.struct
+class ContactMixing:
+  """The model's arrays MuJoCo mixes a pair's contact parameters from (MuJoCo Warp's
+  collision_core.contact_params): one kernel argument (contact_mixing), unpacked in mixed_params."""
+
+  geom_condim: wp.array(dtype=int)
+  geom_priority: wp.array(dtype=int)
+  geom_solmix: wp.array2d(dtype=float)
+  geom_solref: wp.array2d(dtype=wp.vec2)
+  geom_solimp: wp.array2d(dtype=vec5)
+  geom_friction: wp.array2d(dtype=wp.vec3)
+  geom_margin: wp.array2d(dtype=float)
+  geom_gap: wp.array2d(dtype=float)
+  geom_adhesion: wp.array2d(dtype=float)
+  pair_dim: wp.array(dtype=int)
+  pair_solref: wp.array2d(dtype=wp.vec2)
+  pair_solreffriction: wp.array2d(dtype=wp.vec2)
+  pair_solimp: wp.array2d(dtype=vec5)
+  pair_margin: wp.array2d(dtype=float)
+  pair_gap: wp.array2d(dtype=float)
+  pair_adhesion: wp.array2d(dtype=float)
+  pair_friction: wp.array2d(dtype=vec5)
+
+
+@wp.func
+def mixed_params(mixing: ContactMixing, pair_in: wp.array(dtype=wp.vec2i), pairid_in: wp.array(dtype=wp.vec2i),
+                 cid: int, worldid: int):
+  """MuJoCo Warp's contact_params of pair ``cid``: (geom pair, margin, gap, condim, friction,
+  solref, solreffriction, solimp, adhesion)."""
+  return contact_params(
+    mixing.geom_condim, mixing.geom_priority, mixing.geom_solmix, mixing.geom_solref, mixing.geom_solimp,
+    mixing.geom_friction, mixing.geom_margin, mixing.geom_gap, mixing.geom_adhesion, mixing.pair_dim,
+    mixing.pair_solref, mixing.pair_solreffriction, mixing.pair_solimp, mixing.pair_margin, mixing.pair_gap,
+    mixing.pair_adhesion, mixing.pair_friction, pair_in, pairid_in, cid, worldid,
+  )
+
+
 @wp.func
 def _offset(ptr: wp.uint64, row: int, row_bytes: int) -> wp.uint64:
   """Address of row ``row`` of a contiguous array (in 64 bits: rows x bytes can pass 2**31)."""
@@ -60,51 +124,36 @@ def world_rows(
   quota: ContactQuota,
   worldid: int,
   naconmax_in: int,
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
+  contacts_out: ContactRows,
 ):
   """The contact rows world ``worldid`` may write, as MuJoCo Warp's write_contact takes them: the
   row limit, the 15 contact arrays and the counter. With a quota, views of the world's rows and
   its own counter; without, the whole arrays and ``d.nacon``."""
   start = int(0)
   n = naconmax_in
-  counter = nacon_out.ptr
+  counter = contacts_out.nacon.ptr
   if quota.per_world > 0:
     start = worldid * quota.per_world
     n = quota.per_world
     counter = _offset(quota.world_ncon.ptr, worldid, _INT)
-  k = contact_efc_address_out.shape[1]
+  k = contacts_out.efc_address.shape[1]
   return (
     n,
-    wp.array(ptr=_offset(contact_dist_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
-    wp.array(ptr=_offset(contact_pos_out.ptr, start, _VEC3), shape=(n,), dtype=wp.vec3),
-    wp.array(ptr=_offset(contact_frame_out.ptr, start, _MAT33), shape=(n,), dtype=wp.mat33),
-    wp.array(ptr=_offset(contact_includemargin_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
-    wp.array(ptr=_offset(contact_friction_out.ptr, start, _VEC5), shape=(n,), dtype=vec5),
-    wp.array(ptr=_offset(contact_solref_out.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
-    wp.array(ptr=_offset(contact_solreffriction_out.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
-    wp.array(ptr=_offset(contact_solimp_out.ptr, start, _VEC5), shape=(n,), dtype=vec5),
-    wp.array(ptr=_offset(contact_dim_out.ptr, start, _INT), shape=(n,), dtype=int),
-    wp.array(ptr=_offset(contact_geom_out.ptr, start, _VEC2I), shape=(n,), dtype=wp.vec2i),
-    wp.array(ptr=_offset(contact_efc_address_out.ptr, start, k * _INT), shape=(n, k), dtype=int),
-    wp.array(ptr=_offset(contact_worldid_out.ptr, start, _INT), shape=(n,), dtype=int),
-    wp.array(ptr=_offset(contact_type_out.ptr, start, _INT), shape=(n,), dtype=int),
-    wp.array(ptr=_offset(contact_geomcollisionid_out.ptr, start, _INT), shape=(n,), dtype=int),
-    wp.array(ptr=_offset(contact_adhesion_out.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contacts_out.dist.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contacts_out.pos.ptr, start, _VEC3), shape=(n,), dtype=wp.vec3),
+    wp.array(ptr=_offset(contacts_out.frame.ptr, start, _MAT33), shape=(n,), dtype=wp.mat33),
+    wp.array(ptr=_offset(contacts_out.includemargin.ptr, start, _FLOAT), shape=(n,), dtype=float),
+    wp.array(ptr=_offset(contacts_out.friction.ptr, start, _VEC5), shape=(n,), dtype=vec5),
+    wp.array(ptr=_offset(contacts_out.solref.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
+    wp.array(ptr=_offset(contacts_out.solreffriction.ptr, start, _VEC2), shape=(n,), dtype=wp.vec2),
+    wp.array(ptr=_offset(contacts_out.solimp.ptr, start, _VEC5), shape=(n,), dtype=vec5),
+    wp.array(ptr=_offset(contacts_out.dim.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contacts_out.geom.ptr, start, _VEC2I), shape=(n,), dtype=wp.vec2i),
+    wp.array(ptr=_offset(contacts_out.efc_address.ptr, start, k * _INT), shape=(n, k), dtype=int),
+    wp.array(ptr=_offset(contacts_out.worldid.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contacts_out.type.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contacts_out.geomcollisionid.ptr, start, _INT), shape=(n,), dtype=int),
+    wp.array(ptr=_offset(contacts_out.adhesion.ptr, start, _FLOAT), shape=(n,), dtype=float),
     wp.array(ptr=counter, shape=(1,), dtype=int),
   )
 
@@ -114,29 +163,14 @@ def shared_rows(
   quota: ContactQuota,
   worldid: int,
   naconmax_in: int,
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
+  contacts_out: ContactRows,
 ):
   """world_rows without a quota: the row limit, the contact arrays themselves and ``d.nacon``."""
   return (
-    naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out,
-    contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out,
-    contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out,
-    nacon_out,
+    naconmax_in, contacts_out.dist, contacts_out.pos, contacts_out.frame, contacts_out.includemargin, contacts_out.friction,
+    contacts_out.solref, contacts_out.solreffriction, contacts_out.solimp, contacts_out.dim, contacts_out.geom,
+    contacts_out.efc_address, contacts_out.worldid, contacts_out.type, contacts_out.geomcollisionid,
+    contacts_out.adhesion, contacts_out.nacon,
   )
 
 
@@ -165,40 +199,22 @@ def write_row(
   adhesion: float,
   geoms: wp.vec2i,
   pairid: wp.vec2i,
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
+  contacts_out: ContactRows,
 ) -> int:
   """MuJoCo Warp's write_contact of one contact of world ``worldid`` into the rows it may write:
   without a quota the contact arrays themselves (no views made), else its world's rows."""
   if quota.per_world == 0:
     return write_contact(
       naconmax_in, id_, dist, pos, frame, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion,
-      geoms, pairid, worldid, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-      contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-      contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-      contact_adhesion_out, nacon_out,
+      geoms, pairid, worldid, contacts_out.dist, contacts_out.pos, contacts_out.frame, contacts_out.includemargin, contacts_out.friction,
+      contacts_out.solref, contacts_out.solreffriction, contacts_out.solimp, contacts_out.dim, contacts_out.geom,
+      contacts_out.efc_address, contacts_out.worldid, contacts_out.type, contacts_out.geomcollisionid,
+      contacts_out.adhesion, contacts_out.nacon,
     )
   (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
    rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
    rows_nacon) = world_rows(
-    quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-    contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-    contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-    contact_adhesion_out, nacon_out,
+    quota, worldid, naconmax_in, contacts_out,
   )
   return write_contact(
     limit, id_, dist, pos, frame, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion, geoms,
@@ -240,8 +256,43 @@ WRITTEN_CONTACT_FIELDS = (
 
 
 def contact_outputs(d) -> list:
-  """The contact arrays and counter the plugin's writers take, in their kernels' order."""
-  return [getattr(d.contact, f) for f in WRITTEN_CONTACT_FIELDS] + [d.nacon]
+  """The output the plugin's contact writers take: [contact_rows(d)]."""
+  return [contact_rows(d)]
+
+
+def contact_rows(d) -> ContactRows:
+  """d's contact arrays and counter as one ContactRows, made once a Data (its arrays are fixed
+  when the Data is made; a Data whose contact arrays were replaced gets a new one)."""
+  arrays = [getattr(d.contact, f) for f in WRITTEN_CONTACT_FIELDS] + [d.nacon]
+  held = getattr(d, _ROWS_ATTR, None)
+  if held is None or any(a is not b for a, b in zip(held[0], arrays)):
+    rows = ContactRows()
+    for name, a in zip(WRITTEN_CONTACT_FIELDS + ("nacon",), arrays):
+      setattr(rows, name, a)
+    held = (arrays, rows)
+    object.__setattr__(d, _ROWS_ATTR, held)
+  return held[1]
+
+
+_ROWS_ATTR = "_mjx_supportfield_contact_rows"
+MIXING_FIELDS = tuple(ContactMixing.vars)
+
+
+def contact_mixing(m) -> ContactMixing:
+  """m's mixing arrays as one ContactMixing, made once a Model and again when one of its arrays
+  was replaced (domain randomization may swap an array for another)."""
+  arrays = [getattr(m, f) for f in MIXING_FIELDS]
+  held = getattr(m, _MIXING_ATTR, None)
+  if held is None or any(a is not b for a, b in zip(held[0], arrays)):
+    mixing = ContactMixing()
+    for name, a in zip(MIXING_FIELDS, arrays):
+      setattr(mixing, name, a)
+    held = (arrays, mixing)
+    object.__setattr__(m, _MIXING_ATTR, held)
+  return held[1]
+
+
+_MIXING_ATTR = "_mjx_supportfield_contact_mixing"
 
 
 def check_fits(per_world: int, nworld: int, naconmax: int) -> None:

@@ -7,6 +7,7 @@ from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.launch.contact_quota import ContactQuota
+from mjx_supportfield.launch.contact_quota import ContactRows
 from mjx_supportfield.launch.contact_quota import write_row
 from mjx_supportfield.types import FAR
 
@@ -143,22 +144,7 @@ def write_candidates(
   geoms: wp.vec2i,
   pairid: wp.vec2i,
   worldid: int,
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
+  contacts_out: ContactRows,
   quota: ContactQuota,
 ):
   """Writes the candidates that choose picks (given in a frame: world = origin + rot @ local) as
@@ -174,8 +160,5 @@ def write_candidates(
     pos = origin + rot @ row(c.pos, i)
     write_row(
       quota, worldid, naconmax_in, k, band - c.depth[i], pos - 0.5 * band * normal, make_frame(normal), margin, gap,
-      condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid, contact_dist_out, contact_pos_out,
-      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid, contacts_out,
     )

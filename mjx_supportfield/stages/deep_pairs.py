@@ -44,7 +44,6 @@ import functools
 from types import SimpleNamespace
 
 import warp as wp
-from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
@@ -57,8 +56,12 @@ from mjx_supportfield.geometry.multicontact import Patch
 from mjx_supportfield.geometry.shapes import posed_pair
 from mjx_supportfield.geometry.support import hull_point
 from mjx_supportfield.geometry.support import support_funcs
+from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
+from mjx_supportfield.launch.contact_quota import ContactRows
+from mjx_supportfield.launch.contact_quota import contact_mixing
 from mjx_supportfield.launch.contact_quota import contact_outputs
+from mjx_supportfield.launch.contact_quota import mixed_params
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
 from mjx_supportfield.options import Options
@@ -451,26 +454,10 @@ def deep_kernels(mode: int) -> SimpleNamespace:
   def deep_faces(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
     geom_rbound: wp.array2d(dtype=float),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -500,11 +487,7 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       cid = deep_pair[s]
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, _condim, _friction, _solref, _solreffriction, _solimp, _adhesion = contact_params(
-        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-        pair_friction, pair_in, pairid_in, cid, worldid,
-      )
+      _, margin, gap, _condim, _friction, _solref, _solreffriction, _solimp, _adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                geoms, worldid)
@@ -644,26 +627,10 @@ def deep_kernels(mode: int) -> SimpleNamespace:
   def deep_finish(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
     geom_rbound: wp.array2d(dtype=float),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -699,22 +666,7 @@ def deep_kernels(mode: int) -> SimpleNamespace:
     patch_result: wp.array(dtype=wp.vec4),
     patch_pos: wp.array(dtype=wp.vec3),
     # Data out:
-    contact_dist_out: wp.array(dtype=float),
-    contact_pos_out: wp.array(dtype=wp.vec3),
-    contact_frame_out: wp.array(dtype=wp.mat33),
-    contact_includemargin_out: wp.array(dtype=float),
-    contact_friction_out: wp.array(dtype=vec5),
-    contact_solref_out: wp.array(dtype=wp.vec2),
-    contact_solreffriction_out: wp.array(dtype=wp.vec2),
-    contact_solimp_out: wp.array(dtype=vec5),
-    contact_dim_out: wp.array(dtype=int),
-    contact_geom_out: wp.array(dtype=wp.vec2i),
-    contact_efc_address_out: wp.array2d(dtype=int),
-    contact_worldid_out: wp.array(dtype=int),
-    contact_type_out: wp.array(dtype=int),
-    contact_geomcollisionid_out: wp.array(dtype=int),
-    contact_adhesion_out: wp.array(dtype=float),
-    nacon_out: wp.array(dtype=int),
+    contacts_out: ContactRows,
   ):
     """Each queued pair, one thread: its lanes' edge pairs merged into the least overlap, MPR rerun
     along it where it is shallower (rerun_along), then queued for multi-contact or written as the
@@ -726,11 +678,7 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       cid = deep_pair[s]
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-        pair_friction, pair_in, pairid_in, cid, worldid,
-      )
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                geoms, worldid)
@@ -762,10 +710,7 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       extra.n = 0
       write_pair_contacts(
         res, extra, 0.0, 0.0, 1, band, naconmax_in, margin, gap, condim, friction, solref, solreffriction, solimp,
-        adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out, contact_frame_out,
-        contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
-        contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
-        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+        adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,
       )
 
   return SimpleNamespace(faces=deep_faces, round=deep_round, edges=deep_edges, finish=deep_finish)
@@ -810,10 +755,7 @@ class DeepPairs:
     lane_threads = LANE_THREADS if max_lanes > 1 else nthread
     geometry = [m.geom_type, m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat, self.mesh_support,
                 b.count, b.pair, b.result, b.band, b.along]
-    params = [m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
-              m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
-              m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-              m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat]
+    params = [m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat]
 
     def check():
       wp.launch(

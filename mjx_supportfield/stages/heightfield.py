@@ -71,7 +71,6 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src.collision_core import Geom
 from mujoco_warp._src.collision_core import contact_margin_gap
-from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.types import MJ_MAX_EPAFACES
 from mujoco_warp._src.types import MJ_MAX_EPAHORIZON
 from mujoco_warp._src.types import GeomType
@@ -80,8 +79,12 @@ from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.geometry.mpr import MprSettings
 from mjx_supportfield.geometry.mpr import settings_of
+from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
+from mjx_supportfield.launch.contact_quota import ContactRows
+from mjx_supportfield.launch.contact_quota import contact_mixing
 from mjx_supportfield.launch.contact_quota import contact_outputs
+from mjx_supportfield.launch.contact_quota import mixed_params
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
 from mjx_supportfield.options import Options
@@ -392,31 +395,15 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
   def hfield_contacts(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
     geom_aabb: wp.array3d(dtype=wp.vec3),
     hfield_size: wp.array(dtype=wp.vec4),
     hfield_nrow: wp.array(dtype=int),
     hfield_ncol: wp.array(dtype=int),
     hfield_adr: wp.array(dtype=int),
     hfield_data: wp.array(dtype=float),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     opt_warn_hfield: int,
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
@@ -442,22 +429,7 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
     # Out:
     hfield_count_out: wp.array(dtype=int),
     # Data out:
-    contact_dist_out: wp.array(dtype=float),
-    contact_pos_out: wp.array(dtype=wp.vec3),
-    contact_frame_out: wp.array(dtype=wp.mat33),
-    contact_includemargin_out: wp.array(dtype=float),
-    contact_friction_out: wp.array(dtype=vec5),
-    contact_solref_out: wp.array(dtype=wp.vec2),
-    contact_solreffriction_out: wp.array(dtype=wp.vec2),
-    contact_solimp_out: wp.array(dtype=vec5),
-    contact_dim_out: wp.array(dtype=int),
-    contact_geom_out: wp.array(dtype=wp.vec2i),
-    contact_efc_address_out: wp.array2d(dtype=int),
-    contact_worldid_out: wp.array(dtype=int),
-    contact_type_out: wp.array(dtype=int),
-    contact_geomcollisionid_out: wp.array(dtype=int),
-    contact_adhesion_out: wp.array(dtype=float),
-    nacon_out: wp.array(dtype=int),
+    contacts_out: ContactRows,
   ):
     """One thread a pair of hfield_jobs, except those hfield_closed_form answers: the face
     contacts and its MPR answers in job order (running those the queue had no room for), merged
@@ -476,11 +448,7 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
                     "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
       if tp.closed_form == 1:
         continue  # hfield_closed_form's
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-        pair_friction, pair_in, pairid_in, cid, worldid,
-      )
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
       terrain, b, hf = terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
       hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
       spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
@@ -523,10 +491,7 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
         cands.keep = tp.band  # the penetrating ones (depths include the band)
       write_candidates(
         cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
-        solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,
-        contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-        contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-        contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+        solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,
       )
 
   return hfield_contacts
@@ -663,10 +628,8 @@ class Heightfield:
       contacts_kernel(self.support_mode, self.ccd),
       dim=nthread_pair,
       inputs=[
-        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-        m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
-        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-        m.pair_friction, warn, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
+        m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_aabb] + hfield + [
+        warn, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
         opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.pair, b.job,
         b.answer, b.normal, ccd_in, nthread_pair, quota,
       ],
@@ -677,10 +640,8 @@ class Heightfield:
         hfield_closed_form,
         dim=nthread_pair,
         inputs=[
-          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb] + hfield + [
-          m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion,
-          m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, opt.max_contacts_per_pair,
+          m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_aabb] + hfield + [
+          d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, opt.max_contacts_per_pair,
           opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.count, b.pair, nthread_pair, quota,
         ],
         outputs=contact_outputs(d),

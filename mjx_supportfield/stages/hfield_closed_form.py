@@ -24,12 +24,14 @@ the MPR path, whose prisms see the outer side walls. heightfield.py launches it;
 """
 
 import warp as wp
-from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.math import closest_segment_to_segment_points
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
+from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
+from mjx_supportfield.launch.contact_quota import ContactRows
+from mjx_supportfield.launch.contact_quota import mixed_params
 from mjx_supportfield.stages.candidates import NCANDIDATE
 from mjx_supportfield.stages.candidates import Candidates
 from mjx_supportfield.stages.candidates import add_candidate
@@ -270,31 +272,15 @@ def closed_form_pass(hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: fl
 def hfield_closed_form(
   # Model:
   geom_type: wp.array(dtype=int),
-  geom_condim: wp.array(dtype=int),
+  mixing: ContactMixing,
   geom_dataid: wp.array2d(dtype=int),
-  geom_priority: wp.array(dtype=int),
-  geom_solmix: wp.array2d(dtype=float),
-  geom_solref: wp.array2d(dtype=wp.vec2),
-  geom_solimp: wp.array2d(dtype=vec5),
   geom_size: wp.array2d(dtype=wp.vec3),
-  geom_friction: wp.array2d(dtype=wp.vec3),
-  geom_margin: wp.array2d(dtype=float),
-  geom_gap: wp.array2d(dtype=float),
-  geom_adhesion: wp.array2d(dtype=float),
   geom_aabb: wp.array3d(dtype=wp.vec3),
   hfield_size: wp.array(dtype=wp.vec4),
   hfield_nrow: wp.array(dtype=int),
   hfield_ncol: wp.array(dtype=int),
   hfield_adr: wp.array(dtype=int),
   hfield_data: wp.array(dtype=float),
-  pair_dim: wp.array(dtype=int),
-  pair_solref: wp.array2d(dtype=wp.vec2),
-  pair_solreffriction: wp.array2d(dtype=wp.vec2),
-  pair_solimp: wp.array2d(dtype=vec5),
-  pair_margin: wp.array2d(dtype=float),
-  pair_gap: wp.array2d(dtype=float),
-  pair_adhesion: wp.array2d(dtype=float),
-  pair_friction: wp.array2d(dtype=vec5),
   # Data in:
   geom_xpos_in: wp.array2d(dtype=wp.vec3),
   geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -311,22 +297,7 @@ def hfield_closed_form(
   nthread: int,
   quota: ContactQuota,
   # Data out:
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
+  contacts_out: ContactRows,
 ):
   """The pairs of hfield_jobs' list that take the closed-form pass (marked there by closed_form),
   one thread a pair: their candidates merged (candidates.py) and written (heightfield first, as
@@ -345,15 +316,8 @@ def hfield_closed_form(
     cands = closed_form_pass(hfield, b, tp, spacing, wp.where(b.gtype == GeomType.CAPSULE, NBALL, 1))
     if max_contacts > 1:
       cands.keep = tp.band  # the penetrating ones (depths include the band)
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-      geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-      geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-      pair_friction, pair_in, pairid_in, cid, worldid,
-    )
+    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
     write_candidates(
       cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
-      solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out,
-      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+      solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,
     )

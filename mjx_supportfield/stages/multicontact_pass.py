@@ -14,7 +14,6 @@ from types import SimpleNamespace
 
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
-from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.math import make_frame
 from mujoco_warp._src.types import vec5
 
@@ -30,8 +29,12 @@ from mjx_supportfield.geometry.multicontact import UNKNOWN
 from mjx_supportfield.geometry.multicontact import tilt_funcs
 from mjx_supportfield.geometry.multicontact import tilt_rotation
 from mjx_supportfield.geometry.shapes import posed_pair
+from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
+from mjx_supportfield.launch.contact_quota import ContactRows
+from mjx_supportfield.launch.contact_quota import contact_mixing
 from mjx_supportfield.launch.contact_quota import contact_outputs
+from mjx_supportfield.launch.contact_quota import mixed_params
 from mjx_supportfield.launch.contact_quota import write_row
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
@@ -186,27 +189,11 @@ def pass_kernels(mode: int) -> SimpleNamespace:
   def manifold_kernel(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
     geom_rbound: wp.array2d(dtype=float),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
     geom_aabb: wp.array3d(dtype=wp.vec3),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -230,22 +217,7 @@ def pass_kernels(mode: int) -> SimpleNamespace:
     tilt_pair_count: wp.array(dtype=int),
     tilt_pair: wp.array(dtype=int),
     # Data out:
-    contact_dist_out: wp.array(dtype=float),
-    contact_pos_out: wp.array(dtype=wp.vec3),
-    contact_frame_out: wp.array(dtype=wp.mat33),
-    contact_includemargin_out: wp.array(dtype=float),
-    contact_friction_out: wp.array(dtype=vec5),
-    contact_solref_out: wp.array(dtype=wp.vec2),
-    contact_solreffriction_out: wp.array(dtype=wp.vec2),
-    contact_solimp_out: wp.array(dtype=vec5),
-    contact_dim_out: wp.array(dtype=int),
-    contact_geom_out: wp.array(dtype=wp.vec2i),
-    contact_efc_address_out: wp.array2d(dtype=int),
-    contact_worldid_out: wp.array(dtype=int),
-    contact_type_out: wp.array(dtype=int),
-    contact_geomcollisionid_out: wp.array(dtype=int),
-    contact_adhesion_out: wp.array(dtype=float),
-    nacon_out: wp.array(dtype=int),
+    contacts_out: ContactRows,
   ):
     """The pairs face_pair_kernel queued for face clipping, one thread a pair: the faces it found
     clipped (faceclip.clip_faces) give the contacts; a pair whose corners all lie above the
@@ -258,7 +230,7 @@ def pass_kernels(mode: int) -> SimpleNamespace:
       worldid = pair_worldid_in[cid]
       # the contact parameters are read once the clipping is done: held through it, they took
       # registers it needed
-      margin, gap = contact_margin_gap(geom_margin, geom_gap, pair_margin, pair_gap, geoms, pairid_in[cid][0], worldid)
+      margin, gap = contact_margin_gap(mixing.geom_margin, mixing.geom_gap, mixing.pair_margin, mixing.pair_gap, geoms, pairid_in[cid][0], worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                        geoms, worldid, patch_result[i], patch_pos[i])
@@ -274,11 +246,7 @@ def pass_kernels(mode: int) -> SimpleNamespace:
       cid = patch_pair[i]
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-        pair_friction, pair_in, pairid_in, cid, worldid,
-      )
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       res = _queued_first(patch_result[i], patch_pos[i])
       frame = make_frame(res.normal)
@@ -293,10 +261,7 @@ def pass_kernels(mode: int) -> SimpleNamespace:
           pos = res.pos - 0.5 * band * res.normal
         write_row(
           quota, worldid, naconmax_in, k, manifold_dist(found, k), pos, frame, margin, gap, condim, friction, solref,
-          solreffriction, solimp, adhesion, geoms, pairid_in[cid], contact_dist_out, contact_pos_out, contact_frame_out,
-          contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
-          contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
-          contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+          solreffriction, solimp, adhesion, geoms, pairid_in[cid], contacts_out,
         )
 
   @wp.kernel(module=module, cuda_max_registers=HEAVY_REGISTERS)
@@ -400,27 +365,11 @@ def pass_kernels(mode: int) -> SimpleNamespace:
   def patch_kernel(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
     geom_rbound: wp.array2d(dtype=float),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
     geom_aabb: wp.array3d(dtype=wp.vec3),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -443,22 +392,7 @@ def pass_kernels(mode: int) -> SimpleNamespace:
     nthread: int,
     quota: ContactQuota,
     # Data out:
-    contact_dist_out: wp.array(dtype=float),
-    contact_pos_out: wp.array(dtype=wp.vec3),
-    contact_frame_out: wp.array(dtype=wp.mat33),
-    contact_includemargin_out: wp.array(dtype=float),
-    contact_friction_out: wp.array(dtype=vec5),
-    contact_solref_out: wp.array(dtype=wp.vec2),
-    contact_solreffriction_out: wp.array(dtype=wp.vec2),
-    contact_solimp_out: wp.array(dtype=vec5),
-    contact_dim_out: wp.array(dtype=int),
-    contact_geom_out: wp.array(dtype=wp.vec2i),
-    contact_efc_address_out: wp.array2d(dtype=int),
-    contact_worldid_out: wp.array(dtype=int),
-    contact_type_out: wp.array(dtype=int),
-    contact_geomcollisionid_out: wp.array(dtype=int),
-    contact_adhesion_out: wp.array(dtype=float),
-    nacon_out: wp.array(dtype=int),
+    contacts_out: ContactRows,
   ):
     """The pairs left to the tilts (face_pair_kernel, manifold_kernel): the tilts, then all their
     contacts.
@@ -476,11 +410,7 @@ def pass_kernels(mode: int) -> SimpleNamespace:
       g1 = geoms[0]
       g2 = geoms[1]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-        pair_friction, pair_in, pairid_in, cid, worldid,
-      )
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                        geoms, worldid, patch_result[i], patch_pos[i])
@@ -492,10 +422,7 @@ def pass_kernels(mode: int) -> SimpleNamespace:
                                  wp.where(q < tilt_result.shape[0], q, -1))
       write_pair_contacts(
         res, extra, mc_tolerance * size, mpr_options.tolerance * scale, max_contacts, band, naconmax_in, margin, gap,
-        condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
-        contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-        contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-        contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+        condim, friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,
       )
 
   return SimpleNamespace(face_pair=face_pair_kernel, manifold=manifold_kernel, tilt=tilt_kernel,
@@ -542,10 +469,8 @@ class MultiContactPass:
       kernels.manifold,
       dim=nthread,
       inputs=[
-        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-        m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
-        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
+        m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_aabb,
+        d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support,
         opt.max_contacts_per_pair, opt.mc_tolerance, pair, pairid, pair_worldid,
         b.patch_pair, b.patch_result, b.patch_pos, b.face_count, b.face_queue, b.face_faces, nthread,
         quota,
@@ -573,10 +498,8 @@ class MultiContactPass:
       kernels.patch,
       dim=nthread,
       inputs=[
-        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-        m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb,
-        m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-        m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
+        m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_rbound, m.geom_aabb,
+        d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
         opt.max_contacts_per_pair, opt.mc_perturbation, opt.mc_tolerance, pair,
         pairid, pair_worldid, b.tilt_pair_count, b.tilt_pair, b.patch_pair, b.patch_result, b.patch_pos,
         b.tilt_result, nthread, quota,

@@ -16,7 +16,6 @@ import functools
 
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
-from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.collision_core import geom_collision_pair
 from mujoco_warp._src.collision_primitive import _PRIMITIVE_COLLISIONS
 from mujoco_warp._src.math import make_frame
@@ -39,8 +38,12 @@ from mjx_supportfield.geometry.sdf import MeshSdf
 from mjx_supportfield.geometry.sdf import needs_sdf
 from mjx_supportfield.geometry.sdf import sdf_funcs
 from mjx_supportfield.geometry.shapes import posed_pair
+from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
+from mjx_supportfield.launch.contact_quota import ContactRows
+from mjx_supportfield.launch.contact_quota import contact_mixing
 from mjx_supportfield.launch.contact_quota import contact_outputs
+from mjx_supportfield.launch.contact_quota import mixed_params
 from mjx_supportfield.launch.contact_quota import rows
 from mjx_supportfield.launch.contact_quota import write_row
 from mjx_supportfield.launch.grid import GRID_THREADS
@@ -94,17 +97,9 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
   def analytic_narrowphase(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
     mesh_vertadr: wp.array(dtype=int),
     mesh_vertnum: wp.array(dtype=int),
     mesh_graphadr: wp.array(dtype=int),
@@ -119,14 +114,6 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
     mesh_polymapadr: wp.array(dtype=int),
     mesh_polymapnum: wp.array(dtype=int),
     mesh_polymap: wp.array(dtype=int),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -140,22 +127,7 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
     nthread: int,
     quota: ContactQuota,
     # Data out:
-    contact_dist_out: wp.array(dtype=float),
-    contact_pos_out: wp.array(dtype=wp.vec3),
-    contact_frame_out: wp.array(dtype=wp.mat33),
-    contact_includemargin_out: wp.array(dtype=float),
-    contact_friction_out: wp.array(dtype=vec5),
-    contact_solref_out: wp.array(dtype=wp.vec2),
-    contact_solreffriction_out: wp.array(dtype=wp.vec2),
-    contact_solimp_out: wp.array(dtype=vec5),
-    contact_dim_out: wp.array(dtype=int),
-    contact_geom_out: wp.array(dtype=wp.vec2i),
-    contact_efc_address_out: wp.array2d(dtype=int),
-    contact_worldid_out: wp.array(dtype=int),
-    contact_type_out: wp.array(dtype=int),
-    contact_geomcollisionid_out: wp.array(dtype=int),
-    contact_adhesion_out: wp.array(dtype=float),
-    nacon_out: wp.array(dtype=int),
+    contacts_out: ContactRows,
   ):
     tid = wp.tid()
     for i in range(tid, queue_count[QUEUE_ANALYTIC], nthread):
@@ -167,36 +139,14 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
       (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
        rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid,
        rows_adhesion, rows_nacon) = wp.static(rows(per_world))(
-        quota, worldid, naconmax_in, contact_dist_out, contact_pos_out, contact_frame_out, contact_includemargin_out,
-        contact_friction_out, contact_solref_out, contact_solreffriction_out, contact_solimp_out, contact_dim_out,
-        contact_geom_out, contact_efc_address_out, contact_worldid_out, contact_type_out, contact_geomcollisionid_out,
-        contact_adhesion_out, nacon_out,
+        quota, worldid, naconmax_in, contacts_out,
       )
       # the parameters and poses read once, before the routine's branch, as stock MuJoCo Warp's
       # kernel does: read inside each branch, a warp of mixed pair types ran them once per type
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-        geom_condim,
-        geom_priority,
-        geom_solmix,
-        geom_solref,
-        geom_solimp,
-        geom_friction,
-        geom_margin,
-        geom_gap,
-        geom_adhesion,
-        pair_dim,
-        pair_solref,
-        pair_solreffriction,
-        pair_solimp,
-        pair_margin,
-        pair_gap,
-        pair_adhesion,
-        pair_friction,
-        pair_in,
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in,
         pairid_in,
         cid,
-        worldid,
-      )
+        worldid)
       geom1, geom2 = geom_collision_pair(
         geom_type,
         geom_dataid,
@@ -279,22 +229,7 @@ def write_pair_contacts(
   geoms: wp.vec2i,
   pairid: wp.vec2i,
   worldid: int,
-  contact_dist_out: wp.array(dtype=float),
-  contact_pos_out: wp.array(dtype=wp.vec3),
-  contact_frame_out: wp.array(dtype=wp.mat33),
-  contact_includemargin_out: wp.array(dtype=float),
-  contact_friction_out: wp.array(dtype=vec5),
-  contact_solref_out: wp.array(dtype=wp.vec2),
-  contact_solreffriction_out: wp.array(dtype=wp.vec2),
-  contact_solimp_out: wp.array(dtype=vec5),
-  contact_dim_out: wp.array(dtype=int),
-  contact_geom_out: wp.array(dtype=wp.vec2i),
-  contact_efc_address_out: wp.array2d(dtype=int),
-  contact_worldid_out: wp.array(dtype=int),
-  contact_type_out: wp.array(dtype=int),
-  contact_geomcollisionid_out: wp.array(dtype=int),
-  contact_adhesion_out: wp.array(dtype=float),
-  nacon_out: wp.array(dtype=int),
+  contacts_out: ContactRows,
   quota: ContactQuota,
 ):
   """Writes a pair's contacts: MPR's point (when kept, see keep_first), then the patch's points,
@@ -311,10 +246,7 @@ def write_pair_contacts(
       pos = wp.vec3(extra.pos[j, 0], extra.pos[j, 1], extra.pos[j, 2])
     write_row(
       quota, worldid, naconmax_in, k, band - depth, pos - 0.5 * band * res.normal, frame, margin, gap, condim,
-      friction, solref, solreffriction, solimp, adhesion, geoms, pairid, contact_dist_out, contact_pos_out,
-      contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-      contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-      contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out,
+      friction, solref, solreffriction, solimp, adhesion, geoms, pairid, contacts_out,
     )
 
 
@@ -448,26 +380,10 @@ def convex_kernel(use_gjk: bool, mode: int):
   def convex_narrowphase(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
     geom_rbound: wp.array2d(dtype=float),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -506,22 +422,7 @@ def convex_kernel(use_gjk: bool, mode: int):
     deep_result: wp.array(dtype=wp.vec4),
     deep_pos: wp.array(dtype=wp.vec3),
     # Data out:
-    contact_dist_out: wp.array(dtype=float),
-    contact_pos_out: wp.array(dtype=wp.vec3),
-    contact_frame_out: wp.array(dtype=wp.mat33),
-    contact_includemargin_out: wp.array(dtype=float),
-    contact_friction_out: wp.array(dtype=vec5),
-    contact_solref_out: wp.array(dtype=wp.vec2),
-    contact_solreffriction_out: wp.array(dtype=wp.vec2),
-    contact_solimp_out: wp.array(dtype=vec5),
-    contact_dim_out: wp.array(dtype=int),
-    contact_geom_out: wp.array(dtype=wp.vec2i),
-    contact_efc_address_out: wp.array2d(dtype=int),
-    contact_worldid_out: wp.array(dtype=int),
-    contact_type_out: wp.array(dtype=int),
-    contact_geomcollisionid_out: wp.array(dtype=int),
-    contact_adhesion_out: wp.array(dtype=float),
-    nacon_out: wp.array(dtype=int),
+    contacts_out: ContactRows,
   ):
     """Contacts of convex pairs by MPR (or GJK/EPA) on the shapes' support functions: the
     deepest point; a pair that may touch in more points (not spheres and ellipsoids, where one
@@ -536,29 +437,10 @@ def convex_kernel(use_gjk: bool, mode: int):
       g1 = geoms[0]
       g2 = geoms[1]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-        geom_condim,
-        geom_priority,
-        geom_solmix,
-        geom_solref,
-        geom_solimp,
-        geom_friction,
-        geom_margin,
-        geom_gap,
-        geom_adhesion,
-        pair_dim,
-        pair_solref,
-        pair_solreffriction,
-        pair_solimp,
-        pair_margin,
-        pair_gap,
-        pair_adhesion,
-        pair_friction,
-        pair_in,
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in,
         pairid_in,
         cid,
-        worldid,
-      )
+        worldid)
       # contacts are wanted up to margin + gap apart: grow A by that band, shrink the answer back
       band = wp.max(margin + gap, 0.0)
       a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
@@ -636,10 +518,7 @@ def convex_kernel(use_gjk: bool, mode: int):
         continue
       write_pair_contacts(
         res, extra, 0.0, 0.0, 1, band, naconmax_in, margin, gap, condim, friction, solref, solreffriction, solimp,
-        adhesion, geoms, pairid_in[cid], worldid, contact_dist_out, contact_pos_out, contact_frame_out,
-        contact_includemargin_out, contact_friction_out, contact_solref_out, contact_solreffriction_out,
-        contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out, contact_worldid_out,
-        contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+        adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,
       )
 
   return convex_narrowphase
@@ -735,12 +614,10 @@ class NarrowPhase:
         analytic_kernel(self.analytic_types, bool(opt.contacts_per_world)),
         dim=nthread_analytic,
         inputs=[
-          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-          m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.mesh_vertadr, m.mesh_vertnum,
+          m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.mesh_vertadr, m.mesh_vertnum,
           m.mesh_graphadr, m.mesh_vert, m.mesh_graph, m.mesh_polynum, m.mesh_polyadr, m.mesh_polynormal,
           m.mesh_polyvertadr, m.mesh_polyvertnum, m.mesh_polyvert, m.mesh_polymapadr, m.mesh_polymapnum,
-          m.mesh_polymap, m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin,
-          m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax,
+          m.mesh_polymap, d.geom_xpos, d.geom_xmat, d.naconmax,
         ] + queue_inputs + [nthread_analytic, quota],
         outputs=contact_outputs(d),
       )
@@ -754,10 +631,7 @@ class NarrowPhase:
         convex_kernel(use_gjk, mode),
         dim=nthread,
         inputs=[
-          m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref,
-          m.geom_solimp, m.geom_size, m.geom_rbound, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion,
-          m.pair_dim, m.pair_solref, m.pair_solreffriction, m.pair_solimp, m.pair_margin, m.pair_gap,
-          m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
+          m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
           opt.mpr_pair_contacts, opt.mc_perturbation,
           self.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
           warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,

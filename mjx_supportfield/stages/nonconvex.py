@@ -26,7 +26,6 @@ from types import SimpleNamespace
 import mujoco
 import numpy as np
 import warp as wp
-from mujoco_warp._src.collision_core import contact_params
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import vec5
 
@@ -37,8 +36,12 @@ from mjx_supportfield.geometry.sdf import shape_sdf_grad
 from mjx_supportfield.geometry.shapes import posed_shape
 from mjx_supportfield.geometry.support import GRID_DIRECTIONS
 from mjx_supportfield.geometry.support import box_corner
+from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
+from mjx_supportfield.launch.contact_quota import ContactRows
+from mjx_supportfield.launch.contact_quota import contact_mixing
 from mjx_supportfield.launch.contact_quota import contact_outputs
+from mjx_supportfield.launch.contact_quota import mixed_params
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.options import Options
 from mjx_supportfield.stages.candidates import Candidates
@@ -297,30 +300,14 @@ def nonconvex_narrowphase(mode: int) -> wp.Kernel:
   def nonconvex_narrowphase(
     # Model:
     geom_type: wp.array(dtype=int),
-    geom_condim: wp.array(dtype=int),
+    mixing: ContactMixing,
     geom_dataid: wp.array2d(dtype=int),
-    geom_priority: wp.array(dtype=int),
-    geom_solmix: wp.array2d(dtype=float),
-    geom_solref: wp.array2d(dtype=wp.vec2),
-    geom_solimp: wp.array2d(dtype=vec5),
     geom_size: wp.array2d(dtype=wp.vec3),
-    geom_friction: wp.array2d(dtype=wp.vec3),
-    geom_margin: wp.array2d(dtype=float),
-    geom_gap: wp.array2d(dtype=float),
-    geom_adhesion: wp.array2d(dtype=float),
     geom_aabb: wp.array3d(dtype=wp.vec3),
     mesh_vertnum: wp.array(dtype=int),
     mesh_faceadr: wp.array(dtype=int),
     mesh_facenum: wp.array(dtype=int),
     mesh_face: wp.array(dtype=wp.vec3i),
-    pair_dim: wp.array(dtype=int),
-    pair_solref: wp.array2d(dtype=wp.vec2),
-    pair_solreffriction: wp.array2d(dtype=wp.vec2),
-    pair_solimp: wp.array2d(dtype=vec5),
-    pair_margin: wp.array2d(dtype=float),
-    pair_gap: wp.array2d(dtype=float),
-    pair_adhesion: wp.array2d(dtype=float),
-    pair_friction: wp.array2d(dtype=vec5),
     # Data in:
     geom_xpos_in: wp.array2d(dtype=wp.vec3),
     geom_xmat_in: wp.array2d(dtype=wp.mat33),
@@ -338,22 +325,7 @@ def nonconvex_narrowphase(mode: int) -> wp.Kernel:
     nthread: int,
     quota: ContactQuota,
     # Data out:
-    contact_dist_out: wp.array(dtype=float),
-    contact_pos_out: wp.array(dtype=wp.vec3),
-    contact_frame_out: wp.array(dtype=wp.mat33),
-    contact_includemargin_out: wp.array(dtype=float),
-    contact_friction_out: wp.array(dtype=vec5),
-    contact_solref_out: wp.array(dtype=wp.vec2),
-    contact_solreffriction_out: wp.array(dtype=wp.vec2),
-    contact_solimp_out: wp.array(dtype=vec5),
-    contact_dim_out: wp.array(dtype=int),
-    contact_geom_out: wp.array(dtype=wp.vec2i),
-    contact_efc_address_out: wp.array2d(dtype=int),
-    contact_worldid_out: wp.array(dtype=int),
-    contact_type_out: wp.array(dtype=int),
-    contact_geomcollisionid_out: wp.array(dtype=int),
-    contact_adhesion_out: wp.array(dtype=float),
-    nacon_out: wp.array(dtype=int),
+    contacts_out: ContactRows,
   ):
     """Contacts of pairs with a non-convex mesh (and neither a plane nor a heightfield)."""
     tid = wp.tid()
@@ -369,11 +341,7 @@ def nonconvex_narrowphase(mode: int) -> wp.Kernel:
       if t1 == GeomType.PLANE or t1 == GeomType.HFIELD:
         continue
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = contact_params(
-        geom_condim, geom_priority, geom_solmix, geom_solref, geom_solimp, geom_friction, geom_margin, geom_gap,
-        geom_adhesion, pair_dim, pair_solref, pair_solreffriction, pair_solimp, pair_margin, pair_gap, pair_adhesion,
-        pair_friction, pair_in, pairid_in, cid, worldid,
-      )
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
       a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
       b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
       band = wp.max(margin + gap, 0.0)
@@ -383,10 +351,7 @@ def nonconvex_narrowphase(mode: int) -> wp.Kernel:
                               band, spacing)
       write_candidates(
         cands, max_contacts, wp.identity(n=3, dtype=float), wp.vec3(0.0), band, naconmax_in, margin, gap, condim,
-        friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contact_dist_out,
-        contact_pos_out, contact_frame_out, contact_includemargin_out, contact_friction_out, contact_solref_out,
-        contact_solreffriction_out, contact_solimp_out, contact_dim_out, contact_geom_out, contact_efc_address_out,
-        contact_worldid_out, contact_type_out, contact_geomcollisionid_out, contact_adhesion_out, nacon_out, quota,
+        friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,
       )
 
   return nonconvex_narrowphase
@@ -423,10 +388,8 @@ class NonConvex:
       nonconvex_narrowphase(self.support_mode),
       dim=nthread,
       inputs=[
-        m.geom_type, m.geom_condim, m.geom_dataid, m.geom_priority, m.geom_solmix, m.geom_solref, m.geom_solimp,
-        m.geom_size, m.geom_friction, m.geom_margin, m.geom_gap, m.geom_adhesion, m.geom_aabb, m.mesh_vertnum,
-        self.mesh_faceadr, self.mesh_facenum, m.mesh_face, m.pair_dim, m.pair_solref, m.pair_solreffriction,
-        m.pair_solimp, m.pair_margin, m.pair_gap, m.pair_adhesion, m.pair_friction, d.geom_xpos, d.geom_xmat,
+        m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_aabb, m.mesh_vertnum,
+        self.mesh_faceadr, self.mesh_facenum, m.mesh_face, d.geom_xpos, d.geom_xmat,
         d.naconmax, self.mesh_support, self.geom_nonconvex, self.sdfs,
         opt.max_contacts_per_pair, opt.mc_tolerance,
       ] + pair_inputs + [quota],

@@ -283,3 +283,22 @@ def test_models_the_plugin_adds_to_keep_its_pipeline():
   for scene in ("convex_pile", "terrain", "nonconvex"):
     sim = load(scene)
     assert not sf.install(sim.mjm, sim.m).stock_path, scene
+
+
+def test_a_swapped_model_array_reaches_the_kernels():
+  """Domain randomization may put a new array in the model (m.geom_friction = ...): the kernels'
+  mixing struct is made again from it, so the contacts carry the new friction (MuJoCo mixes the
+  larger of the two geoms': halving every geom's halves every contact's)."""
+  sim = load("convex_pile", nworld=1)
+  sf.install(sim.mjm, sim.m, sf.Options(warm_start=False))  # the second call repeats the first's geometry
+  sf.collision(sim.m, sim.d)
+  n = contacts(sim.d, 0).n
+  assert n > 0
+  dist_before = sim.d.contact.dist.numpy()[:n].copy()
+  mu_before = sim.d.contact.friction.numpy()[:n, 0].copy()
+  friction = sim.m.geom_friction.numpy()
+  friction[..., 0] *= 0.5
+  sim.m.geom_friction = wp.array(friction, dtype=wp.vec3)
+  sf.collision(sim.m, sim.d)
+  np.testing.assert_array_equal(sim.d.contact.dist.numpy()[:n], dist_before)
+  np.testing.assert_allclose(sim.d.contact.friction.numpy()[:n, 0], 0.5 * mu_before, rtol=1e-6)

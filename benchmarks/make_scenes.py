@@ -78,8 +78,9 @@ def layers(side: int, nlayer: int, seed: int = 0) -> str:
         k = len(bodies)
         kind = kinds[k % len(kinds)]
         s = rng.uniform(0.02, 0.04, size=3)
-        size = {"sphere": f"{s[0]:.3f}", "capsule": f"{s[0]:.3f} {s[1]:.3f}", "box": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}",
-                "cylinder": f"{s[0]:.3f} {s[1]:.3f}", "ellipsoid": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"}[kind]
+        size = {"sphere": f"{s[0]:.3f}", "capsule": f"{s[0]:.3f} {s[1]:.3f}",
+                "box": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}", "cylinder": f"{s[0]:.3f} {s[1]:.3f}",
+                "ellipsoid": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"}[kind]
         x, y, z = (i - side / 2) * spacing + shift, (j - side / 2) * spacing + shift, 0.06 + layer * 0.1
         bodies.append(f'    <body name="b{k}" pos="{x:.3f} {y:.3f} {z:.3f}"><freejoint/>'
                       f'<geom name="g{k}" type="{kind}" size="{size}"/></body>\n')
@@ -116,7 +117,8 @@ def terrain(n: int, seed: int = 0) -> str:
 def main():
   os.makedirs(HERE, exist_ok=True)
   scenes = {"pile_32_128.xml": pile(32, 128), "pile_256_128.xml": pile(256, 128), "pile_1024_128.xml": pile(1024, 128),
-            "pile_32_1024.xml": pile(32, 1024), "primitives_32.xml": primitives(32), "primitives_layers_48.xml": layers(4, 3),
+            "pile_32_1024.xml": pile(32, 1024), "primitives_32.xml": primitives(32),
+            "primitives_layers_48.xml": layers(4, 3),
             "terrain_32.xml": terrain(32)}
   for fname, xml in scenes.items():
     with open(os.path.join(HERE, fname), "w") as f:

@@ -5,9 +5,9 @@
                             [--save CK.npz [--save-every N]] [--resume CK.npz]
 
 The worlds start from the scene's initial state (its keyframe, if it has one; a pile's bodies
-dropped from rest), each with a small random velocity so they differ. Steps run ``chunk`` at a time from one captured graph
-(a CUDA graph on a GPU; a last, shorter chunk runs uncaptured). After every chunk the run checks,
-over all worlds:
+dropped from rest), each with a small random velocity so they differ. Steps run ``chunk`` at a
+time from one captured graph (a CUDA graph on a GPU; a last, shorter chunk runs uncaptured).
+After every chunk the run checks, over all worlds:
   - qpos and qvel finite (a NaN anywhere is a failure);
   - total energy (MuJoCo's kinetic + potential) bounded: at most the highest energy of MuJoCo C's
     own 500-step run from rest plus the random velocities' kinetic energy (never below the largest
@@ -273,7 +273,8 @@ def parse_args():
                  help="leave qacc_warmstart out if the state arrays would pass this size (uncompressed)")
   p.add_argument("--resume", default=None, help="continue the soak saved in this checkpoint")
   p.add_argument("--ctrl-noise", type=float, default=0.0,
-                 help="each chunk, controls = the keyframe's + uniform noise of this amplitude (energy then not judged)")
+                 help="each chunk, controls = the keyframe's + uniform noise of this amplitude "
+                 "(energy then not judged)")
   p.add_argument("--reset-every", type=int, default=0,
                  help="reset each world (masked reset_data, to the keyframe) every N chunks, staggered (0: never)")
   return p.parse_args()

@@ -174,8 +174,8 @@ class Collider:
         meshes |= mesh_ids
       self.mesh_sdf = build_mesh_sdf(mjm, options.sdf_res, meshes, device)
       sdfs.hull = self.mesh_sdf
-      self.narrow = narrowphase.NarrowPhase(options, self.support_mode, self.mesh_support, self.mesh_sdf, analytic_types,
-                                            mpr_types, wp.array(queue_table, dtype=int), geom_nonconvex)
+      self.narrow = narrowphase.NarrowPhase(options, self.support_mode, self.mesh_support, self.mesh_sdf,
+                                            analytic_types, mpr_types, wp.array(queue_table, dtype=int), geom_nonconvex)
       self.deep = deep_pairs.DeepPairs(options, self.support_mode, self.mesh_support, mpr_types)
       self.multicontact = multicontact_pass.MultiContactPass(options, self.support_mode, self.mesh_support, mpr_types)
       self.nonconvex = nonconvex.NonConvex(

@@ -236,7 +236,8 @@ def test_version(capsys):
 
 def test_help_does_not_import_warp():
   """--help answers without importing Warp or MuJoCo Warp (seconds of imports)."""
-  code = ("import sys\nfrom mjx_supportfield.tools.cli import main\ntry:\n  main(['--help'])\nexcept SystemExit:\n  pass\n"
+  code = ("import sys\nfrom mjx_supportfield.tools.cli import main\n"
+          "try:\n  main(['--help'])\nexcept SystemExit:\n  pass\n"
           "main_help = [m for m in ('warp', 'mujoco_warp', 'mujoco') if m in sys.modules]\n"
           "try:\n  main(['compare', '--help'])\nexcept SystemExit:\n  pass\n"
           "print('imported:', main_help + [m for m in ('warp', 'mujoco_warp') if m in sys.modules])")

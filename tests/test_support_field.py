@@ -106,7 +106,8 @@ def _box_ties(size: wp.vec3, rtol: float, dirs: wp.array(dtype=wp.vec3), out: wp
 
 def _run(ms, mesh, mode, dirs):
   out = wp.zeros(len(dirs), dtype=wp.vec3)
-  wp.launch(_query(SupportMode.of(mode)), dim=len(dirs), inputs=[ms, mesh, wp.array(dirs.astype(np.float32), dtype=wp.vec3), out])
+  wp.launch(_query(SupportMode.of(mode)), dim=len(dirs),
+            inputs=[ms, mesh, wp.array(dirs.astype(np.float32), dtype=wp.vec3), out])
   return out.numpy().astype(np.float64)
 
 

@@ -167,9 +167,9 @@ def shared_rows(
 ):
   """world_rows without a quota: the row limit, the contact arrays themselves and ``d.nacon``."""
   return (
-    naconmax_in, contacts_out.dist, contacts_out.pos, contacts_out.frame, contacts_out.includemargin, contacts_out.friction,
-    contacts_out.solref, contacts_out.solreffriction, contacts_out.solimp, contacts_out.dim, contacts_out.geom,
-    contacts_out.efc_address, contacts_out.worldid, contacts_out.type, contacts_out.geomcollisionid,
+    naconmax_in, contacts_out.dist, contacts_out.pos, contacts_out.frame, contacts_out.includemargin,
+    contacts_out.friction, contacts_out.solref, contacts_out.solreffriction, contacts_out.solimp, contacts_out.dim,
+    contacts_out.geom, contacts_out.efc_address, contacts_out.worldid, contacts_out.type, contacts_out.geomcollisionid,
     contacts_out.adhesion, contacts_out.nacon,
   )
 
@@ -206,10 +206,10 @@ def write_row(
   if quota.per_world == 0:
     return write_contact(
       naconmax_in, id_, dist, pos, frame, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion,
-      geoms, pairid, worldid, contacts_out.dist, contacts_out.pos, contacts_out.frame, contacts_out.includemargin, contacts_out.friction,
-      contacts_out.solref, contacts_out.solreffriction, contacts_out.solimp, contacts_out.dim, contacts_out.geom,
-      contacts_out.efc_address, contacts_out.worldid, contacts_out.type, contacts_out.geomcollisionid,
-      contacts_out.adhesion, contacts_out.nacon,
+      geoms, pairid, worldid, contacts_out.dist, contacts_out.pos, contacts_out.frame, contacts_out.includemargin,
+      contacts_out.friction, contacts_out.solref, contacts_out.solreffriction, contacts_out.solimp, contacts_out.dim,
+      contacts_out.geom, contacts_out.efc_address, contacts_out.worldid, contacts_out.type,
+      contacts_out.geomcollisionid, contacts_out.adhesion, contacts_out.nacon,
     )
   (limit, rows_dist, rows_pos, rows_frame, rows_includemargin, rows_friction, rows_solref, rows_solreffriction,
    rows_solimp, rows_dim, rows_geom, rows_efc_address, rows_worldid, rows_type, rows_geomcollisionid, rows_adhesion,
@@ -260,39 +260,33 @@ def contact_outputs(d) -> list:
   return [contact_rows(d)]
 
 
-def contact_rows(d) -> ContactRows:
-  """d's contact arrays and counter as one ContactRows, made once a Data (its arrays are fixed
-  when the Data is made; a Data whose contact arrays were replaced gets a new one)."""
-  arrays = [getattr(d.contact, f) for f in WRITTEN_CONTACT_FIELDS] + [d.nacon]
-  held = getattr(d, _ROWS_ATTR, None)
+def _held_struct(owner, attr: str, struct, names: tuple, arrays: list):
+  """The ``struct`` of ``arrays`` (its fields ``names``) kept on ``owner`` under ``attr``, made
+  again when one of the arrays was replaced since (a Data's or a Model's array swapped for another)."""
+  held = getattr(owner, attr, None)
   if held is None or any(a is not b for a, b in zip(held[0], arrays)):
-    rows = ContactRows()
-    for name, a in zip(WRITTEN_CONTACT_FIELDS + ("nacon",), arrays):
-      setattr(rows, name, a)
-    held = (arrays, rows)
-    object.__setattr__(d, _ROWS_ATTR, held)
+    value = struct()
+    for name, a in zip(names, arrays):
+      setattr(value, name, a)
+    held = (arrays, value)
+    object.__setattr__(owner, attr, held)
   return held[1]
 
 
-_ROWS_ATTR = "_mjx_supportfield_contact_rows"
+def contact_rows(d) -> ContactRows:
+  """d's contact arrays and counter as one ContactRows, made once a Data."""
+  return _held_struct(d, "_mjx_supportfield_contact_rows", ContactRows, WRITTEN_CONTACT_FIELDS + ("nacon",),
+                      [getattr(d.contact, f) for f in WRITTEN_CONTACT_FIELDS] + [d.nacon])
+
+
 MIXING_FIELDS = tuple(ContactMixing.vars)
 
 
 def contact_mixing(m) -> ContactMixing:
   """m's mixing arrays as one ContactMixing, made once a Model and again when one of its arrays
   was replaced (domain randomization may swap an array for another)."""
-  arrays = [getattr(m, f) for f in MIXING_FIELDS]
-  held = getattr(m, _MIXING_ATTR, None)
-  if held is None or any(a is not b for a, b in zip(held[0], arrays)):
-    mixing = ContactMixing()
-    for name, a in zip(MIXING_FIELDS, arrays):
-      setattr(mixing, name, a)
-    held = (arrays, mixing)
-    object.__setattr__(m, _MIXING_ATTR, held)
-  return held[1]
-
-
-_MIXING_ATTR = "_mjx_supportfield_contact_mixing"
+  return _held_struct(m, "_mjx_supportfield_contact_mixing", ContactMixing, MIXING_FIELDS,
+                      [getattr(m, f) for f in MIXING_FIELDS])
 
 
 def check_fits(per_world: int, nworld: int, naconmax: int) -> None:

@@ -45,7 +45,6 @@ from types import SimpleNamespace
 
 import warp as wp
 from mujoco_warp._src.types import GeomType
-from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.geometry.mpr import BEHIND
 from mjx_supportfield.geometry.mpr import MprResult
@@ -487,7 +486,8 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       cid = deep_pair[s]
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, _condim, _friction, _solref, _solreffriction, _solimp, _adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
+      _, margin, gap, _condim, _friction, _solref, _solreffriction, _solimp, _adhesion = mixed_params(
+        mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                geoms, worldid)
@@ -678,7 +678,8 @@ def deep_kernels(mode: int) -> SimpleNamespace:
       cid = deep_pair[s]
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(
+        mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale = posed_pair(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                geoms, worldid)
@@ -733,8 +734,9 @@ class DeepPairs:
     rows = max(1, min(capacity, nworld * DEEP_PAIRS_PER_WORLD))
     # rows x lanes never exceeds LANE_THREADS (_lanes), nor rows with one lane
     lane_slots = max(rows, LANE_THREADS)
-    return Buffers(count=wp.zeros(2, dtype=int), world_count=wp.zeros(nworld, dtype=int), pair=wp.zeros(rows, dtype=int),
-                   result=wp.zeros(rows, dtype=wp.vec4), pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
+    return Buffers(count=wp.zeros(2, dtype=int), world_count=wp.zeros(nworld, dtype=int),
+                   pair=wp.zeros(rows, dtype=int), result=wp.zeros(rows, dtype=wp.vec4),
+                   pos=wp.zeros(rows, dtype=wp.vec3), band=wp.zeros(rows, dtype=float),
                    along=wp.zeros(rows, dtype=float), lane_best=wp.zeros(lane_slots, dtype=wp.vec4),
                    lane_index=wp.zeros(lane_slots, dtype=int), walk_cur=wp.zeros((2, 2 * rows), dtype=wp.vec4),
                    walk_live=wp.zeros((2, 2 * rows), dtype=int),

@@ -75,7 +75,6 @@ from mujoco_warp._src.types import MJ_MAX_EPAFACES
 from mujoco_warp._src.types import MJ_MAX_EPAHORIZON
 from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
-from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.geometry.mpr import MprSettings
 from mjx_supportfield.geometry.mpr import settings_of
@@ -448,7 +447,8 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
                     "cells around its centre are used\n", geoms[1], MAX_CELLS, worldid)
       if tp.closed_form == 1:
         continue  # hfield_closed_form's
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(
+        mixing, pair_in, pairid_in, cid, worldid)
       terrain, b, hf = terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
       hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
       spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
@@ -553,9 +553,9 @@ class Heightfield:
     nface = 6 + MJ_MAX_EPAFACES * self.ccd_iterations
     return Buffers(
       ccd_rows=rows,
-      epa=(wp.empty((rows, nvert), dtype=wp.vec3), wp.empty((rows, nvert), dtype=int), wp.empty((rows, nface), dtype=int),
-           wp.empty((rows, nface), dtype=wp.vec3), wp.empty((rows, nface), dtype=float),
-           wp.empty((rows, MJ_MAX_EPAHORIZON), dtype=int)),
+      epa=(wp.empty((rows, nvert), dtype=wp.vec3), wp.empty((rows, nvert), dtype=int),
+           wp.empty((rows, nface), dtype=int), wp.empty((rows, nface), dtype=wp.vec3),
+           wp.empty((rows, nface), dtype=float), wp.empty((rows, MJ_MAX_EPAHORIZON), dtype=int)),
       count=wp.zeros(COUNT_CCD_AS_MPR + 1, dtype=int),
       kind_next=wp.zeros(NKIND, dtype=int),
       order=wp.zeros(nmpr, dtype=int),

@@ -20,13 +20,13 @@ nearest the triangle (a ridge beside the capsule, a steep triangle beside an end
 One kernel, ``hfield_closed_form``, one thread a pair of hfield_jobs' list (which marks the pairs
 by ``closed_form``), in a module of its own: the stage's other kernels (MPR, GJK/EPA) take
 minutes to build, and this one is small. A pair reaching past the heightfield's outer edge keeps
-the MPR path, whose prisms see the outer side walls. heightfield.py launches it; the pair list and the window are hfield_window.py's.
+the MPR path, whose prisms see the outer side walls. heightfield.py launches it; the pair list
+and the window are hfield_window.py's.
 """
 
 import warp as wp
 from mujoco_warp._src.math import closest_segment_to_segment_points
 from mujoco_warp._src.types import GeomType
-from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
@@ -316,7 +316,8 @@ def hfield_closed_form(
     cands = closed_form_pass(hfield, b, tp, spacing, wp.where(b.gtype == GeomType.CAPSULE, NBALL, 1))
     if max_contacts > 1:
       cands.keep = tp.band  # the penetrating ones (depths include the band)
-    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
+    _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(
+      mixing, pair_in, pairid_in, cid, worldid)
     write_candidates(
       cands, max_contacts, terrain.rot, terrain.pos, tp.band, naconmax_in, margin, gap, condim, friction, solref,
       solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,

@@ -271,7 +271,8 @@ def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: Candid
   res.normal = normal
   if job < 2:
     if not (_through_border(hfield, r, c, normal)
-            or prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol, uses_ccd(b, code))):
+            or prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol,
+                                 uses_ccd(b, code))):
       return cands
   elif wp.dot(normal, na + nb) <= 0.0:
     return cands  # B's surface normal must point away from the terrain

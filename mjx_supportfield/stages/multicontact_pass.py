@@ -15,7 +15,6 @@ from types import SimpleNamespace
 import warp as wp
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.math import make_frame
-from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.geometry.faceclip import TILTS
 from mjx_supportfield.geometry.faceclip import faceclip_funcs
@@ -230,7 +229,8 @@ def pass_kernels(mode: int) -> SimpleNamespace:
       worldid = pair_worldid_in[cid]
       # the contact parameters are read once the clipping is done: held through it, they took
       # registers it needed
-      margin, gap = contact_margin_gap(mixing.geom_margin, mixing.geom_gap, mixing.pair_margin, mixing.pair_gap, geoms, pairid_in[cid][0], worldid)
+      margin, gap = contact_margin_gap(mixing.geom_margin, mixing.geom_gap, mixing.pair_margin,
+                                       mixing.pair_gap, geoms, pairid_in[cid][0], worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                        geoms, worldid, patch_result[i], patch_pos[i])
@@ -246,7 +246,8 @@ def pass_kernels(mode: int) -> SimpleNamespace:
       cid = patch_pair[i]
       geoms = pair_in[cid]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(
+        mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       res = _queued_first(patch_result[i], patch_pos[i])
       frame = make_frame(res.normal)
@@ -410,7 +411,8 @@ def pass_kernels(mode: int) -> SimpleNamespace:
       g1 = geoms[0]
       g2 = geoms[1]
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(
+        mixing, pair_in, pairid_in, cid, worldid)
       band = wp.max(margin + gap, 0.0)
       a, b, scale, res = _queued_patch(geom_type, geom_dataid, geom_size, geom_rbound, geom_xpos_in, geom_xmat_in, ms, band,
                                        geoms, worldid, patch_result[i], patch_pos[i])

@@ -631,8 +631,8 @@ class NarrowPhase:
         convex_kernel(use_gjk, mode),
         dim=nthread,
         inputs=[
-          m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
-          opt.mpr_pair_contacts, opt.mc_perturbation,
+          m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_rbound, d.geom_xpos, d.geom_xmat,
+          d.naconmax, self.mesh_support, settings_of(opt), opt.mpr_pair_contacts, opt.mc_perturbation,
           self.mesh_sdf, opt.mpr_to_sdf_overlap_ratio, opt.warm_start,
           warm.stamp, warm.slot_stamp, warm.slot_key, warm.slot_value, warm.slot_checked, warm.misses,
           DEEP_RECHECK_CALLS, deep.per_world,

@@ -27,7 +27,6 @@ import mujoco
 import numpy as np
 import warp as wp
 from mujoco_warp._src.types import GeomType
-from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.geometry.sdf import MeshSdf
 from mjx_supportfield.geometry.sdf import sdf_funcs
@@ -341,7 +340,8 @@ def nonconvex_narrowphase(mode: int) -> wp.Kernel:
       if t1 == GeomType.PLANE or t1 == GeomType.HFIELD:
         continue
       worldid = pair_worldid_in[cid]
-      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(mixing, pair_in, pairid_in, cid, worldid)
+      _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(
+        mixing, pair_in, pairid_in, cid, worldid)
       a = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g1, worldid)
       b = posed_shape(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, g2, worldid)
       band = wp.max(margin + gap, 0.0)

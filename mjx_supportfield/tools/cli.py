@@ -221,7 +221,8 @@ def _parser() -> argparse.ArgumentParser:
   b.add_argument("--steps", type=int, default=100, help="timed launches per measurement (default and minimum 100)")
   b.add_argument("--settle", type=int, default=200, help="MuJoCo C steps before timing, to start in contact")
   b.add_argument("--keyframe", type=int, default=None,
-                 help="settle from this keyframe of each model instead of qpos0 (robots that stand where a keyframe puts them)")
+                 help="settle from this keyframe of each model instead of qpos0 (robots that stand where a "
+                 "keyframe puts them)")
   b.add_argument("--nconmax", type=int, default=None, help="contacts per world to allocate for both implementations (default: from MuJoCo C's settled contacts, doubled while either overflows)")
   b.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: Warp's default)")
   b.add_argument("--json", default=None, help="write rows as JSON")

@@ -7,7 +7,8 @@ its longest thread (issue #37): this counts them. Every ``wp.launch`` and ``wp.l
 a collision call after a warm-up call (MuJoCo Warp's and the plugin's alike), plus Warp's scans
 and sorts (``wp.utils.array_scan``, ``radix_sort_pairs``, ``segmented_sort_pairs``: one launch or
 more each on a GPU, counted as one), and ``wp.capture_if`` gates. Default scenes: the suite's
-primitive scenes, a mesh pile, terrain and aloha_pot.
+primitive scenes, a mesh pile, terrain and aloha_pot. ``--stock-pair-classes primitive,...`` counts
+the plugin with those pair classes routed to MuJoCo Warp's kernels (Options.stock_pair_classes).
 """
 
 import argparse
@@ -26,6 +27,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
 from mjx_supportfield.driver import install  # noqa: E402
+from mjx_supportfield.options import Options  # noqa: E402
 from mjx_supportfield.tools.bench import settled_state  # noqa: E402
 
 _COUNTED = (("launch", wp), ("launch_tiled", wp), ("array_scan", wp.utils), ("radix_sort_pairs", wp.utils),
@@ -53,13 +55,13 @@ def counting(counts: collections.Counter):
       setattr(owner, name, fn)
 
 
-def count(path: str, nworld: int, plugin: bool) -> collections.Counter:
-  """The launches of one collision call on ``path``'s settled state."""
+def count(path: str, nworld: int, plugin: bool, options: Options = Options()) -> collections.Counter:
+  """The launches of one collision call on ``path``'s settled state (stock, or the plugin with ``options``)."""
   mjm = mujoco.MjModel.from_xml_path(path)
   mjd = settled_state(mjm, 200)
   m = mjw.put_model(mjm)
   if plugin:
-    install(mjm, m)
+    install(mjm, m, options)
   d = mjw.put_data(mjm, mjd, nworld=nworld, nconmax=max(64, 2 * mjd.ncon), njmax=max(256, 12 * mjd.ncon))
   mjw.kinematics(m, d)
   mjw.collision(m, d)  # warm-up: compiles, makes the per-Data state
@@ -74,7 +76,9 @@ def main():
   p.add_argument("models", nargs="*")
   p.add_argument("--nworld", type=int, default=4)
   p.add_argument("--json", default=None)
+  p.add_argument("--stock-pair-classes", default="", help="pair classes routed to MuJoCo Warp's kernels")
   args = p.parse_args()
+  options = Options(stock_pair_classes=tuple(c for c in args.stock_pair_classes.split(",") if c))
   wp.config.log_level = wp.LOG_WARNING
   scenes = os.path.join(HERE, "scenes")
   models = args.models or [os.path.join(scenes, "primitives_32.xml"), os.path.join(scenes, "primitives_layers_48.xml"),
@@ -83,14 +87,14 @@ def main():
                            os.path.join(os.path.dirname(mjw.__file__), "test_data", "aloha_pot", "scene.xml")]
   rows = []
   for path in models:
-    stock, plugin = count(path, args.nworld, False), count(path, args.nworld, True)
+    stock, plugin = count(path, args.nworld, False), count(path, args.nworld, True, options)
     name = os.path.basename(os.path.dirname(path)) if path.endswith("scene.xml") else os.path.basename(path)[:-4]
     rows.append({"scene": name, "stock": sum(stock.values()), "plugin": sum(plugin.values()),
                  "stock_launches": dict(stock), "plugin_launches": dict(plugin)})
     print(f"{name:24s} stock {sum(stock.values()):3d} launches, plugin {sum(plugin.values()):3d}", flush=True)
   if args.json:
     with open(args.json, "w") as f:
-      json.dump({"nworld": args.nworld, "rows": rows}, f, indent=1)
+      json.dump({"nworld": args.nworld, "stock_pair_classes": options.stock_pair_classes, "rows": rows}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,8 @@ primitives_<n>.xml: n mixed primitives (sphere, capsule, box, cylinder, ellipsoi
 primitives_layers_<n>.xml: n mixed primitives dropped in three layers onto each other: a pile that
                    rests on itself, most contacts between primitives.
 terrain_<n>.xml  : n mixed primitives and convex meshes dropped on a bumpy 64 x 64 heightfield.
+cost_<class>.xml : 48 geoms in three layers whose contacts are of one pair class (analytic, primitive,
+                   mesh, mesh_mesh): benchmarks/cost_model.py's scenes.
 """
 
 import os
@@ -63,29 +65,53 @@ def primitives(n: int, seed: int = 0) -> str:
   return HEADER.format(name=f"primitives_{n}") + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
 
 
-def layers(side: int, nlayer: int, seed: int = 0) -> str:
-  """Mixed primitives dropped in ``nlayer`` layers of ``side`` x ``side``, each layer shifted by half
-  a cell so that its bodies land on the ones below: a pile that rests on itself, not only on the
-  floor (most pairs primitive against primitive, many of them stacked)."""
+PRIMITIVE_KINDS = ("sphere", "capsule", "box", "cylinder", "ellipsoid")
+# the kinds that make each pair class of Options.stock_pair_classes carry a stack's contacts
+CLASS_KINDS = {
+  "analytic": ("sphere", "capsule", "box"),
+  "primitive": ("cylinder", "ellipsoid"),
+  "mesh": ("mesh", "box", "capsule", "sphere"),  # a checkerboard of meshes and primitives
+  "mesh_mesh": ("mesh",),
+}
+
+
+def layers(side: int, nlayer: int, seed: int = 0, kinds: tuple = PRIMITIVE_KINDS, name: str = "") -> str:
+  """Geoms of ``kinds`` (primitives, or "mesh": a random hull) dropped in ``nlayer`` layers of
+  ``side`` x ``side``, each layer shifted by half a cell so that its bodies land on the ones below:
+  a pile that rests on itself, not only on the floor (most pairs geom against geom, many of them
+  stacked)."""
   rng = np.random.default_rng(seed)
-  kinds = ["sphere", "capsule", "box", "cylinder", "ellipsoid"]
   spacing = 0.085
-  bodies = []
+  bodies, meshes = [], []
   for layer in range(nlayer):
     shift = 0.5 * spacing * (layer % 2)
     for i in range(side):
       for j in range(side):
         k = len(bodies)
         kind = kinds[k % len(kinds)]
+        if "mesh" in kinds and len(kinds) > 1:  # each mesh among primitives, each primitive among meshes
+          kind = "mesh" if (i + j + layer) % 2 == 0 else kinds[1 + k % (len(kinds) - 1)]
         s = rng.uniform(0.02, 0.04, size=3)
-        size = {"sphere": f"{s[0]:.3f}", "capsule": f"{s[0]:.3f} {s[1]:.3f}",
-                "box": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}", "cylinder": f"{s[0]:.3f} {s[1]:.3f}",
-                "ellipsoid": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"}[kind]
+        if kind == "mesh":
+          meshes.append(f'    <mesh name="m{k}" vertex="{" ".join(f"{v:.5f}" for v in ellipsoid_points(rng, 64).ravel())}"/>\n')
+          attrs = f'type="mesh" mesh="m{k}"'
+        else:
+          size = {"sphere": f"{s[0]:.3f}", "capsule": f"{s[0]:.3f} {s[1]:.3f}",
+                  "box": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}", "cylinder": f"{s[0]:.3f} {s[1]:.3f}",
+                  "ellipsoid": f"{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"}[kind]
+          attrs = f'type="{kind}" size="{size}"'
         x, y, z = (i - side / 2) * spacing + shift, (j - side / 2) * spacing + shift, 0.06 + layer * 0.1
         bodies.append(f'    <body name="b{k}" pos="{x:.3f} {y:.3f} {z:.3f}"><freejoint/>'
-                      f'<geom name="g{k}" type="{kind}" size="{size}"/></body>\n')
-  name = f"primitives_layers_{side * side * nlayer}"
-  return HEADER.format(name=name) + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
+                      f'<geom name="g{k}" {attrs}/></body>\n')
+  name = name or f"primitives_layers_{side * side * nlayer}"
+  assets = f"  <asset>\n{''.join(meshes)}  </asset>\n" if meshes else ""
+  return HEADER.format(name=name) + assets + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
+
+
+def class_scenes() -> dict:
+  """A stack of 48 geoms a pair class (CLASS_KINDS), for the cost model (cost_model.py):
+  cost_<class>.xml. The heightfield class's scene is terrain_32."""
+  return {f"cost_{c}.xml": layers(4, 3, seed=1, kinds=kinds, name=f"cost_{c}") for c, kinds in CLASS_KINDS.items()}
 
 
 def terrain(n: int, seed: int = 0) -> str:
@@ -119,7 +145,7 @@ def main():
   scenes = {"pile_32_128.xml": pile(32, 128), "pile_256_128.xml": pile(256, 128), "pile_1024_128.xml": pile(1024, 128),
             "pile_32_1024.xml": pile(32, 1024), "primitives_32.xml": primitives(32),
             "primitives_layers_48.xml": layers(4, 3),
-            "terrain_32.xml": terrain(32)}
+            "terrain_32.xml": terrain(32), **class_scenes()}
   for fname, xml in scenes.items():
     with open(os.path.join(HERE, fname), "w") as f:
       f.write(xml)

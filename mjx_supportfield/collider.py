@@ -127,27 +127,47 @@ class Collider:
       self._geom_dataid = m.geom_dataid
       self.mesh_support = build_mesh_support(mjm, m.mesh_vert, options.support_res, device,
                                              meshes=self.collided_meshes)
+      # non-convex meshes: their own triangles' SDFs
+      ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
+      nonconvex.warn_open_meshes(mjm, ncgeoms)
+      flags = np.isin(np.arange(mjm.ngeom), ncgeoms).astype(np.int32)
+      geom_nonconvex = wp.array(flags, dtype=int)
+      has_nonconvex_pairs = bool(len(ncgeoms)) and bool(flags[pairs].any()) if len(pairs) else False
       stock = np.isin(np.asarray(mjm.geom_type), [int(t) for t in STOCK_TYPES])
       stock[large] = True
-      self.geom_stock = wp.array(stock.astype(np.int32), dtype=int)
+      # per geom: 1 MuJoCo Warp's, -1 the plugin's whatever the pair's class, 0 by the class
+      self.geom_stock = wp.array(np.where(stock, 1, -flags).astype(np.int32), dtype=int)
 
       explicit = (pairids[:, 0] >= 0) | (pairids[:, 1] >= 0)
+      sensor = pairids[:, 1] >= 0
       # no world can have more pairs than the model allows after its static filters
       max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
       nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
-      self.has_stock_pairs = bool(stock.any()) or bool((pairids[:, 1] >= 0).any())
+      t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
+      # the pair classes routed to MuJoCo Warp's narrow phase (Options.stock_pair_classes)
+      routed_types = routing.stock_types(routing.pair_types_present(mjm, pairs),
+                                         {routing.PairClass.named(c) for c in options.stock_pair_classes})
+      routed = (np.array([(GeomType(a), GeomType(b)) in routed_types for a, b in zip(t1, t2)], bool)
+                & ~flags[pairs].any(axis=1)) if len(pairs) else np.zeros(0, bool)
+      to_stock = (stock[pairs].any(axis=1) if len(pairs) else np.zeros(0, bool)) | sensor | routed
+      self.has_stock_pairs = bool(to_stock.any())
+      # MuJoCo Warp's kernels for the routed types only, unless pairs of any type can reach it
+      self.stock_types = None if bool(stock.any()) or bool(sensor.any()) else frozenset(
+        (GeomType(a), GeomType(b)) for a, b in zip(t1[routed], t2[routed]))
       self.broad = broadphase.BroadPhase(
         mjm.ngeom, nxn, max_pairs, len(pairs), wp.array(pairs[explicit].astype(np.int32), dtype=wp.vec2i),
-        wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i), self.geom_stock, options.sap_axis)
+        wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i), self.geom_stock,
+        wp.array(routing.stock_type_table(routed_types), dtype=int), options.sap_axis)
 
-      present = routing.pair_types_present(mjm, pairs)
+      kept = ~routed  # the pairs not routed away by class (those of MuJoCo Warp's own geoms count, as bounds)
+      present = routing.pair_types_present(mjm, pairs[kept])
       analytic_types, mpr_types, queue_table = routing.pair_queue_table(present, options.narrowphase == "gjk")
       has_hfield_pairs = any(t1 == GeomType.HFIELD and t2 in CONVEX_TYPES for t1, t2 in present)
-      t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
-      queues = queue_table[t1 * routing.NGEOMTYPE + t2]
+      queues = queue_table[t1[kept] * routing.NGEOMTYPE + t2[kept]]
       nmpr = int(((queues == routing.QUEUE_GJK) | (queues == routing.QUEUE_CANDIDATE)).sum())
       self.warm_slots = warmstart.slots_per_world(min(nmpr, max_pairs))
-      on_hfield = t1 == GeomType.HFIELD  # bounds its kernels' pairs; boxes and meshes collide prisms by GJK/EPA
+      # bounds its kernels' pairs; boxes and meshes collide prisms by GJK/EPA
+      on_hfield = (t1 == GeomType.HFIELD) & kept
       self.hfield = heightfield.Heightfield(
         options, self.support_mode, self.mesh_support, has_hfield_pairs,
         min(int((on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))).sum()), max_pairs),
@@ -155,12 +175,6 @@ class Collider:
         # spheres and capsules on terrain: the closed-form kernel (hfield_closed_form.py)
         bool((on_hfield & np.isin(t2, [int(GeomType.SPHERE), int(GeomType.CAPSULE)])).any()),
         int(mjm.opt.ccd_iterations))
-      # non-convex meshes: their own triangles' SDFs
-      ncgeoms = nonconvex.nonconvex_geom_ids(mjm, options.nonconvex_geoms)
-      nonconvex.warn_open_meshes(mjm, ncgeoms)
-      flags = np.isin(np.arange(mjm.ngeom), ncgeoms).astype(np.int32)
-      geom_nonconvex = wp.array(flags, dtype=int)
-      has_nonconvex_pairs = bool(len(ncgeoms)) and bool(flags[pairs].any()) if len(pairs) else False
       ncmeshes = {int(mjm.geom_dataid[g]) for g in ncgeoms}
       sdfs = nonconvex.SdfSet()
       sdfs.true_mesh = build_mesh_sdf(mjm, options.nonconvex_sdf_res, ncmeshes, device, nonconvex.mesh_triangles)
@@ -298,8 +312,8 @@ class Collider:
     # with the corrected normal
     for stage in self.stages.values():
       stage.launch(m, d, st)
-    if self.has_stock_pairs:  # SDF geoms, collision-sensor pairs: MuJoCo Warp's own narrow phase
-      collision_driver._narrowphase(m, d, st.broad.stock_ctx)
+    if self.has_stock_pairs:  # routed classes, SDF geoms, collision-sensor pairs: MuJoCo Warp's own narrow phase
+      stage_ends.stock_narrowphase(m, d, st.broad.stock_ctx, self.stock_types)
     if m.nflex > 0 and not incremental:
       collision_driver.flex_collision(m, d, st.broad.stock_ctx)
     sort = m.opt.deterministic & DeterminismType.CONTACTS

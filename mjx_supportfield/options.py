@@ -9,6 +9,8 @@ import math
 SUPPORT_MODES = ("field", "refined", "exact")
 NARROWPHASES = ("mpr", "gjk")
 BROADPHASES = ("auto", "nxn", "sap")
+# the pair classes of Options.stock_pair_classes (stages/routing.py's PairClass)
+PAIR_CLASSES = ("analytic", "primitive", "mesh", "mesh_mesh", "hfield")
 # "auto" takes nxn up to this many pairs after MuJoCo's static filters, sweep-and-prune beyond
 NXN_MAX_PAIRS = 16384
 
@@ -115,6 +117,16 @@ class Options:
       (``path`` is "stock"), and the plugin's per-world pair budget and NaN-pose skip do not
       apply. False, ``broadphase`` other than "auto", or ``contacts_per_world`` > 0: the
       plugin's own pipeline.
+    stock_pair_classes: pair classes collided by MuJoCo Warp's own narrow phase instead of the
+      plugin's kernels, on the plugin's broad-phase pairs (docs/performance.md times each class
+      both ways): "analytic" (MuJoCo's closed forms: plane against a geom, sphere and capsule
+      pairs, box-box; through the plugin the same routines), "primitive" (other pairs of convex
+      primitives: cylinders, ellipsoids), "mesh" (a convex mesh against a primitive), "mesh_mesh",
+      "hfield" (a heightfield against a convex geom). Default () (none). Their contacts are
+      MuJoCo Warp's (GJK/EPA and its multi-contact for the convex pairs), written after the
+      plugin's; non-convex meshes stay the plugin's. A model whose every pair is routed there
+      (and with nothing for the plugin's broad phase to do, as for stock_for_analytic_models)
+      collides through MuJoCo Warp's own collision stage.
   """
 
   support_res: int = 180
@@ -138,6 +150,7 @@ class Options:
   hfield_mprs_per_pair: int = 16
   contacts_per_world: int = 0
   stock_for_analytic_models: bool = True
+  stock_pair_classes: tuple = ()
 
   @property
   def mpr_pair_contacts(self) -> int:
@@ -173,6 +186,13 @@ class Options:
     if isinstance(names, str) or not isinstance(names, (tuple, list)) or not all(isinstance(n, str) for n in names):
       raise ValueError(f"Options.nonconvex_geoms: expected a list of geom names, got {names!r}")
     object.__setattr__(self, "nonconvex_geoms", tuple(names))
+    classes = self.stock_pair_classes
+    if isinstance(classes, str) or not isinstance(classes, (tuple, list)):
+      raise ValueError(f"Options.stock_pair_classes: expected a list of pair classes, got {classes!r}")
+    unknown = [c for c in classes if c not in PAIR_CLASSES]
+    if unknown:
+      raise ValueError(f"Options.stock_pair_classes: {unknown[0]!r} is not one of {', '.join(PAIR_CLASSES)}")
+    object.__setattr__(self, "stock_pair_classes", tuple(classes))
 
   @classmethod
   def from_dict(cls, values: dict) -> "Options":

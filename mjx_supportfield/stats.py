@@ -29,7 +29,7 @@ class CollisionStats(dict):
     hfield_ccd_as_mpr: prisms of boxes and meshes on a heightfield that found no row of GJK/EPA
       memory left and ran MPR instead (a contact of the prism's deepest point, not EPA's).
     path: "plugin", or "stock" where MuJoCo Warp's own collision stage ran
-      (``Options.stock_for_analytic_models``); then ``pairs`` is its pair count, the per-world
+      (``Options.stock_for_analytic_models``, ``stock_pair_classes``); then ``pairs`` is its pair count, the per-world
       lists are empty and the plugin's other counters 0.
     With sleeping enabled, the pair counts are those of the step's second (incremental) pass.
 
@@ -45,7 +45,7 @@ class CollisionStats(dict):
   def summary(self, worst: int = 3) -> str:
     """Totals of each counter, with the ``worst`` worlds by pairs and by dropped pairs."""
     if self.get("path") == "stock":
-      return (f"MuJoCo Warp's own collision stage (the model has only analytic pairs): {self['pairs']} broad-phase"
+      return (f"MuJoCo Warp's own collision stage (no pair of the model is left to the plugin's kernels): {self['pairs']} broad-phase"
               f" pairs, {self['dropped_contacts']} contacts dropped beyond naconmax")
     if not self.nworld:
       return "no collision has run on this Data yet"

@@ -9,7 +9,7 @@ _PAIRS = int(OverflowType.BROADPHASE)
 
 
 def _fake_impl(overflow_below: dict, calls: list):
-  """A stand-in for bench._bench_impl: overflows (for the implementations named in
+  """A stand-in for bench.time_impl: overflows (for the implementations named in
   ``overflow_below``) while the room is under the given nconmax."""
 
   def impl(mjm, mjd, scene, nworld, name, ncon, launches, options):
@@ -23,7 +23,7 @@ def _fake_impl(overflow_below: dict, calls: list):
 
 def test_room_doubles_for_both_until_neither_overflows(monkeypatch, capsys):
   calls = []
-  monkeypatch.setattr(bench, "_bench_impl", _fake_impl({"stock": 100}, calls))
+  monkeypatch.setattr(bench, "time_impl", _fake_impl({"stock": 100}, calls))
   rows = bench.bench_scene(model_path("convex_pile"), [4], 1, 5, None, None)
   first = calls[0][1]
   rooms = [first, 2 * first, 4 * first, 8 * first]
@@ -36,7 +36,7 @@ def test_room_doubles_for_both_until_neither_overflows(monkeypatch, capsys):
 
 def test_given_room_stays_and_overflow_is_reported(monkeypatch, capsys):
   calls = []
-  monkeypatch.setattr(bench, "_bench_impl", _fake_impl({"plugin": 1000}, calls))
+  monkeypatch.setattr(bench, "time_impl", _fake_impl({"plugin": 1000}, calls))
   rows = bench.bench_scene(model_path("convex_pile"), [4], 1, 5, 50, None)
   assert calls == [("stock", 50), ("plugin", 50)]
   assert {r.impl: r.overflow for r in rows} == {"stock": 0, "plugin": _PAIRS}
@@ -46,7 +46,7 @@ def test_given_room_stays_and_overflow_is_reported(monkeypatch, capsys):
 
 def test_room_stops_growing_and_says_so(monkeypatch, capsys):
   calls = []
-  monkeypatch.setattr(bench, "_bench_impl", _fake_impl({"stock": 10**9}, calls))
+  monkeypatch.setattr(bench, "time_impl", _fake_impl({"stock": 10**9}, calls))
   rows = bench.bench_scene(model_path("convex_pile"), [4], 1, 5, None, None)
   assert len(calls) == 2 * bench._ROOM_ATTEMPTS
   assert [r.overflow for r in rows if r.impl == "stock"] == [_PAIRS, _PAIRS]

@@ -35,6 +35,7 @@ from mujoco_warp._src.types import SleepState
 
 from mjx_supportfield.launch import first_use
 from mjx_supportfield.stages.aabb import update_aabbs
+from mjx_supportfield.stages.routing import NGEOMTYPE
 from mjx_supportfield.stages.routing import PairQueues
 from mjx_supportfield.stages.routing import queue_pair
 
@@ -93,6 +94,22 @@ def _ordered(g1: int, g2: int, type1: int, type2: int) -> wp.vec2i:
   if type1 > type2:
     return wp.vec2i(g2, g1)
   return wp.vec2i(g1, g2)
+
+
+@wp.func
+def _to_stock(geom_type: wp.array(dtype=int), geom_stock: wp.array(dtype=int), type_stock: wp.array(dtype=int),
+              g1: int, g2: int) -> bool:
+  """Whether MuJoCo Warp's own narrow phase collides the pair: a geom it owns (``geom_stock``
+  1: SDF geoms, meshes too large for a support field), else the pair's class where the options
+  route it there (``type_stock``, routing.stock_type_table), unless a geom is the plugin's
+  whatever its class (-1: non-convex meshes, of which MuJoCo Warp has only the hull)."""
+  stock1 = geom_stock[g1]
+  stock2 = geom_stock[g2]
+  if stock1 > 0 or stock2 > 0:
+    return True
+  if stock1 < 0 or stock2 < 0:
+    return False
+  return type_stock[geom_type[g1] * wp.static(NGEOMTYPE) + geom_type[g2]] != 0
 
 
 @wp.func
@@ -260,6 +277,7 @@ def sweep_kernel(static_key: tuple, axis: int):
     # In:
     awake_prev_in: wp.array2d(dtype=int),
     geom_stock: wp.array(dtype=int),
+    type_stock: wp.array(dtype=int),
     aabb_lo: wp.array2d(dtype=wp.vec3),
     aabb_hi: wp.array2d(dtype=wp.vec3),
     max_pairs: int,
@@ -312,7 +330,7 @@ def sweep_kernel(static_key: tuple, axis: int):
         geom_type[g2],
         pairid,
         worldid,
-        geom_stock[g1] != 0 or geom_stock[g2] != 0,
+        _to_stock(geom_type, geom_stock, type_stock, g1, g2),
         max_pairs,
         naconmax_in,
         warn,
@@ -364,6 +382,7 @@ def listed_pairs_kernel(static_key: tuple, direct: bool):
     # In:
     awake_prev_in: wp.array2d(dtype=int),
     geom_stock: wp.array(dtype=int),
+    type_stock: wp.array(dtype=int),
     aabb_lo: wp.array2d(dtype=wp.vec3),
     aabb_hi: wp.array2d(dtype=wp.vec3),
     listed_pair: wp.array(dtype=wp.vec2i),
@@ -402,7 +421,7 @@ def listed_pairs_kernel(static_key: tuple, direct: bool):
       worldid,
     ):
       return
-    to_stock = geom_stock[g1] != 0 or geom_stock[g2] != 0 or pairid[1] >= 0
+    to_stock = pairid[1] >= 0 or _to_stock(geom_type, geom_stock, type_stock, g1, g2)
     if not wp.static(direct):
       _emit(g1, g2, geom_type[g1], geom_type[g2], pairid, worldid, to_stock, max_pairs, naconmax_in, warn, out)
       return
@@ -505,14 +524,15 @@ class BroadPhase:
   launches (the stage contract: docs/architecture.md)."""
 
   def __init__(self, ngeom: int, nxn: bool, max_pairs: int, npair_filtered: int, explicit_pair: wp.array,
-               explicit_pairid: wp.array, geom_stock: wp.array, sap_axis: int):
+               explicit_pairid: wp.array, geom_stock: wp.array, type_stock: wp.array, sap_axis: int):
     self.ngeom = ngeom
     self.nxn = nxn  # nxn's one launch, else sweep-and-prune
     self.max_pairs = max_pairs  # pairs a world can have after MuJoCo's static filters (and the option's cap)
     self.npair_filtered = npair_filtered
     self.explicit_pair, self.explicit_pairid = explicit_pair, explicit_pairid  # <pair>s and sensor pairs
     self.nexplicit = explicit_pair.shape[0]
-    self.geom_stock = geom_stock  # per geom: 1 when MuJoCo Warp's own narrow phase collides its pairs
+    self.geom_stock = geom_stock  # per geom: 1 when MuJoCo Warp's own narrow phase collides its pairs (-1: never)
+    self.type_stock = type_stock  # per geom-type pair: 1 when its class is routed there (Options.stock_pair_classes)
     self.sap_axis = sap_axis
 
   def make_buffers(self, d, st) -> Buffers:
@@ -582,8 +602,8 @@ class BroadPhase:
     warn = bool(int(m.opt.warn_overflow) & int(OverflowType.BROADPHASE))
     common_model = [m.geom_type, m.geom_bodyid, m.geom_aabb, m.geom_rbound, m.geom_margin, m.geom_gap, m.pair_margin,
                     m.pair_gap]
-    common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, b.aabb_lo,
-                   b.aabb_hi]
+    common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, self.type_stock,
+                   b.aabb_lo, b.aabb_hi]
 
     def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
       kernel = listed_pairs_kernel(key, direct)

@@ -2,9 +2,13 @@
 
 The broad phase deals its pairs into one queue per narrow-phase kernel (``queue_pair``, on the
 device); the Collider builds, at install, the table that maps a pair's geom types to its queue
-(``pair_types_present``, ``pair_queue_table``). This module owns the queues' layout
+(``pair_types_present``, ``pair_queue_table``). A pair class the options route to MuJoCo Warp's
+own narrow phase (``PairClass``, ``stock_types``) never reaches a queue: the broad phase lists
+its pairs for MuJoCo Warp instead (``stock_type_table``). This module owns the queues' layout
 (``PairQueues``, ``QUEUE_*``) and those functions; it launches nothing.
 """
+
+import enum
 
 import numpy as np
 import warp as wp
@@ -96,10 +100,54 @@ def pair_queue_table(present, gjk_all: bool) -> tuple:
   return analytic_types, mpr_types, queue_table
 
 
+class PairClass(enum.IntEnum):
+  """Pair classes by the plugin's kernels that collide them: what ``Options.stock_pair_classes``
+  routes to MuJoCo Warp's own narrow phase instead (docs/performance.md's cost model per class)."""
+
+  ANALYTIC = 0  # MuJoCo Warp's closed forms (plane-*, sphere and capsule pairs, box-box, plane-mesh)
+  PRIMITIVE = 1  # other pairs of convex primitives (cylinders, ellipsoids): MPR and multi-contact
+  MESH = 2  # a convex mesh against a primitive
+  MESH_MESH = 3  # two convex meshes
+  HFIELD = 4  # a heightfield against a convex geom
+
+  @classmethod
+  def of(cls, type1: GeomType, type2: GeomType) -> "PairClass":
+    """The class of an ordered (type1 <= type2) geom-type pair the plugin collides."""
+    if (type1, type2) in ANALYTIC_PAIRS:
+      return cls.ANALYTIC
+    if type1 == GeomType.HFIELD:
+      return cls.HFIELD
+    if type1 == GeomType.MESH:  # both meshes: types are ordered
+      return cls.MESH_MESH
+    return cls.MESH if type2 == GeomType.MESH else cls.PRIMITIVE
+
+  @classmethod
+  def named(cls, name: str) -> "PairClass":
+    """The class of an Options.stock_pair_classes name ("analytic", "primitive", ...)."""
+    return cls[name.upper()]
+
+
+def stock_types(present, classes) -> set:
+  """The ordered geom-type pairs among ``present`` whose class is one of ``classes``: those
+  MuJoCo Warp's own narrow phase collides. Non-convex meshes stay the plugin's whatever their
+  class (MuJoCo Warp has only their hulls)."""
+  return {(t1, t2) for t1, t2 in present if PairClass.of(t1, t2) in classes}
+
+
+def stock_type_table(types) -> np.ndarray:
+  """Per geom-type pair (type1 * NGEOMTYPE + type2, either order): 1 where the pair goes to
+  MuJoCo Warp's own narrow phase (``types``, from ``stock_types``), else 0."""
+  table = np.zeros(NGEOMTYPE**2, dtype=np.int32)
+  for t1, t2 in types:
+    table[int(t1) * NGEOMTYPE + int(t2)] = table[int(t2) * NGEOMTYPE + int(t1)] = 1
+  return table
+
+
 def gives_plugin_nothing(options, nxn: bool, plugin_pairs: bool, m) -> bool:
   """Whether MuJoCo Warp's own collision stage computes model ``m``'s contacts, bit for bit, with
-  less work than the plugin's: analytic pairs only (``plugin_pairs``: a pair the plugin's own
-  kernels collide, MPR, heightfield or non-convex), which both run through MuJoCo Warp's
-  routines, on an nxn broad phase in both (Options.stock_for_analytic_models)."""
+  less work than the plugin's: analytic pairs only, which both run through MuJoCo Warp's routines,
+  and pairs of classes routed to MuJoCo Warp (Options.stock_pair_classes), whose contacts are its
+  own either way (``plugin_pairs``: a pair left to the plugin's MPR, heightfield or non-convex
+  kernels), on an nxn broad phase in both (Options.stock_for_analytic_models)."""
   return (options.stock_for_analytic_models and options.broadphase == "auto" and nxn
           and not options.contacts_per_world and not plugin_pairs and m.opt.broadphase == BroadphaseType.NXN)

@@ -1,13 +1,22 @@
 """The collision stage's first and last launches: the counters of every stage reset before the
-broad phase, and the contacts' surface velocities after the narrow phase.
+broad phase; after the plugin's narrow phase, MuJoCo Warp's own on the pairs left to it, and the
+contacts' surface velocities.
 
 This module owns ``start_collision`` (one kernel for the counters that the broad phase, the
 narrow phase, the deep-pair check, the heightfield stage and the warm-start cache own) and its host entry, ``start``,
-and ``surface_velocities`` (MuJoCo Warp's kernel, launched as its collision driver does).
+``stock_narrowphase`` and ``surface_velocities`` (MuJoCo Warp's kernels, launched as its collision
+driver does).
 """
+
+from typing import Optional
 
 import warp as wp
 from mujoco_warp._src import collision_driver
+from mujoco_warp._src.collision_convex import convex_narrowphase
+from mujoco_warp._src.collision_primitive import primitive_narrowphase
+from mujoco_warp._src.types import CollisionType
+from mujoco_warp._src.types import DisableBit
+from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.stages import warmstart
 
@@ -79,6 +88,28 @@ def start(d, st, incremental: bool, warm_start: bool) -> None:
              narrow.queue_count, narrow.patch_count, narrow.face_count, narrow.tilt_pair_count, narrow.tilt_count,
              st.deep.count, st.deep.world_count, st.hfield.count, st.warm.stamp, st.warm.misses],
   )
+
+
+def stock_narrowphase(m, d, ctx, types: Optional[frozenset]) -> None:
+  """MuJoCo Warp's own narrow phase on the pairs the broad phase left to it (``ctx``): all its
+  kernels (``types`` None: the model has SDF geoms, collision-sensor pairs or meshes too large for
+  a field, whose pairs can be of any type), or only those of the ordered geom-type pairs
+  ``types`` (the classes Options.stock_pair_classes routes there), each in the kernel MuJoCo
+  Warp's collision table gives it, so no launch runs for a type pair it cannot be handed."""
+  if types is None:
+    collision_driver._narrowphase(m, d, ctx)
+    return
+  table = collision_driver.MJ_COLLISION_TABLE
+  box_box = (GeomType.BOX, GeomType.BOX)
+  native_ccd = not m.opt.disableflags & DisableBit.NATIVECCD  # else box-box is a primitive pair, as in MuJoCo Warp
+  kind = {t: CollisionType.CONVEX if t == box_box and native_ccd else
+          CollisionType.PRIMITIVE if t == box_box else table[t] for t in types}
+  convex = [t for t in table if kind.get(t) == CollisionType.CONVEX]
+  primitive = [t for t in table if kind.get(t) == CollisionType.PRIMITIVE]
+  if convex:
+    convex_narrowphase(m, d, ctx, convex)
+  if primitive:
+    primitive_narrowphase(m, d, ctx, primitive)
 
 
 def surface_velocities(m, d) -> None:

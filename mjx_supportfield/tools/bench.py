@@ -180,7 +180,7 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
   rows = []
   for nworld in nworlds:
     for attempt in range(_ROOM_ATTEMPTS):
-      pair = [_bench_impl(mjm, mjd, scene, nworld, impl, ncon, launches, options) for impl in ("stock", "plugin")]
+      pair = [time_impl(mjm, mjd, scene, nworld, impl, ncon, launches, options) for impl in ("stock", "plugin")]
       overflow = (pair[0][2] | pair[1][2]) & _ROOM_BITS
       if not overflow or nconmax is not None or attempt == _ROOM_ATTEMPTS - 1:
         break
@@ -207,7 +207,7 @@ def _overflow_names(bits: int) -> str:
   return ", ".join(t.name.lower() for t in OverflowType if bits & int(t))
 
 
-def _bench_impl(mjm, mjd, scene: str, nworld: int, impl: str, ncon: int, launches: int,
+def time_impl(mjm, mjd, scene: str, nworld: int, impl: str, ncon: int, launches: int,
                 options: Optional[Options]) -> tuple[Row, Row, int]:
   """The collision row, the step row and the overflow bits raised while timing one
   implementation ("stock" or "plugin") with ``ncon`` contacts of room per world."""

@@ -1,0 +1,104 @@
+"""The cost model of issue #37: each pair class timed through the plugin's kernels and through
+MuJoCo Warp's own, at each world count, on the GPU.
+
+  python benchmarks/cost_model.py [--nworld 1024,4096,8192] [--classes analytic,primitive,...]
+                                  [--launches 100] [--json OUT] [--markdown OUT]
+
+For each pair class (``Options.stock_pair_classes``: stages/routing.py's PairClass) a scene whose
+contacts are mostly of that class, stacked so that geoms rest on each other (make_scenes.py's
+cost_<class>.xml; terrain_32 for the heightfield class), is timed three ways in one process,
+collision inside evolving graph-captured steps and the whole step, from the same settled state
+with the same room: stock MuJoCo Warp, the plugin, and the plugin with that class routed to
+MuJoCo Warp's narrow phase. The class goes to whichever is faster: the routed column against the
+plugin's says what routing it gains on a scene that holds it, the stock column what stock's
+whole stage costs. Writes the rows (bench.Row fields plus ``variant``) as JSON with the device's
+name, and a markdown table for docs/performance.md.
+"""
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+
+import mujoco
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
+
+import make_scenes  # noqa: E402
+
+from mjx_supportfield.options import PAIR_CLASSES  # noqa: E402
+from mjx_supportfield.options import Options  # noqa: E402
+from mjx_supportfield.tools import bench  # noqa: E402
+
+SCENES = {c: os.path.join(HERE, "scenes", f"cost_{c}.xml") for c in make_scenes.CLASS_KINDS}
+SCENES["hfield"] = os.path.join(HERE, "scenes", "terrain_32.xml")
+
+
+def time_class(pair_class: str, nworld: int, launches: int, settle: int) -> list[dict]:
+  """Rows of the three variants (stock, plugin, routed) of one class's scene at ``nworld``."""
+  path = SCENES[pair_class]
+  mjm = mujoco.MjModel.from_xml_path(path)
+  mjd = bench.settled_state(mjm, settle)
+  ncon = int(1.5 * mjd.ncon) + 16
+  variants = {"stock": ("stock", None), "plugin": ("plugin", Options()),
+              "routed": ("plugin", Options(stock_pair_classes=(pair_class,)))}
+  rows = []
+  for variant, (impl, options) in variants.items():
+    collision, step, overflow = bench.time_impl(mjm, mjd, bench.scene_name(path), nworld, impl, ncon, launches,
+                                                options)
+    if overflow:
+      sys.stderr.write(f"warning: {pair_class}, nworld {nworld}, {variant}: overflow bits {overflow}\n")
+    for row in (collision, step):
+      rows.append(dict(dataclasses.asdict(row), variant=variant, pair_class=pair_class))
+  return rows
+
+
+def markdown(rows: list[dict]) -> str:
+  """Per class and world count: collision ms of stock, the plugin and the class routed to stock,
+  and the faster of the plugin's two."""
+  keyed = {(r["pair_class"], r["nworld"], r["variant"]): r for r in rows if r["stage"] == "collision"}
+  out = ["| pair class | worlds | stock ms | plugin ms | routed to stock ms | faster |", "|---|---|---|---|---|---|"]
+  for pair_class, nworld in sorted({(c, n) for c, n, _ in keyed}, key=lambda k: (PAIR_CLASSES.index(k[0]), k[1])):
+    ms = {v: keyed[(pair_class, nworld, v)]["ms"] for v in ("stock", "plugin", "routed")}
+    faster = "stock's kernels" if ms["routed"] < ms["plugin"] else "plugin's kernels"
+    out.append(f"| {pair_class} | {nworld} | {ms['stock']:.3f} | {ms['plugin']:.3f} | {ms['routed']:.3f} | {faster} |")
+  return "\n".join(out) + "\n"
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  parser.add_argument("--nworld", default=None, help="world counts, comma separated (default: bench's for the"
+                      " device, 1024,4096,8192 on a GPU)")
+  parser.add_argument("--classes", default=",".join(PAIR_CLASSES))
+  parser.add_argument("--launches", type=int, default=100, help="timed collision calls a variant")
+  parser.add_argument("--settle", type=int, default=200, help="MuJoCo C steps before timing")
+  parser.add_argument("--json", default=None)
+  parser.add_argument("--markdown", default=None)
+  args = parser.parse_args()
+  classes = args.classes.split(",")
+  unknown = [c for c in classes if c not in SCENES]
+  if unknown:
+    parser.error(f"--classes: {unknown[0]!r} is not one of {', '.join(SCENES)}")
+  nworlds = [int(n) for n in args.nworld.split(",")] if args.nworld else list(bench.default_world_counts())
+  if not all(os.path.exists(SCENES[c]) for c in classes):
+    make_scenes.main()
+  rows = []
+  for pair_class in classes:
+    for nworld in nworlds:
+      rows += time_class(pair_class, nworld, args.launches, args.settle)
+      sys.stderr.write(f"{pair_class} nworld {nworld} done\n")
+      if args.json:  # rewritten as it goes: a run cut short keeps what it measured
+        with open(args.json, "w") as f:
+          json.dump({"device": bench.device_description(), "rows": rows}, f, indent=1)
+  table = markdown(rows)
+  print(table)
+  if args.markdown:
+    with open(args.markdown, "w") as f:
+      f.write(table)
+
+
+if __name__ == "__main__":
+  main()

@@ -14,15 +14,21 @@ After every chunk the run checks, over all worlds:
     initial energy), plus 1 % of the energy span of C's run. A dropped pile only loses energy, so
     its bound is its initial energy; an actuated robot's actuators add some, as they do in C;
   - no overflow bit in d.overflow, no dropped broad-phase pairs;
-  - no moving body's centre of mass inside a static box, under a static plane or under a
-    heightfield's surface (nothing through the ground).
+  - no moving collision geom's centre inside a static box, under a static plane or under a
+    heightfield's surface: a geom's centre inside the ground has sunk by more than its own
+    radius (half its smallest side for a box), which no resting contact allows (nothing through
+    the ground). Centres, not bodies' centres of mass: a thin limb's centre of mass can lie
+    outside its capsules, below the surface while they rest on it.
 
 Terrain robots (``--ctrl-noise``, ``--reset-every``), as an RL run drives them: every chunk each
 world's controls are the keyframe's plus uniform noise of that amplitude, and after every chunk
 the worlds whose episode ends (world w after chunks k with (k + w) % N == N - 1: a staggered
 fraction 1/N of the worlds each time) are reset as mjlab resets them: ``mjw.reset_data`` with that
-mask, then the keyframe's state shifted horizontally by up to 5 cm, small random velocities and
-``mjw.forward``. Random controls feed the robots energy, so the energy bound is reported but not
+mask, then the keyframe's state shifted horizontally by up to 5 cm and each robot lifted clear
+of the ground it would sink into there (as a spawn on terrain must be), small random velocities
+and ``mjw.forward``. A world in which a robot has walked off the terrain (its root beyond every
+static heightfield and box, seen from above) ends its episode too, as an RL run's out-of-bounds
+termination ends it; its geoms are not judged in that chunk, and the count is reported. Random controls feed the robots energy, so the energy bound is reported but not
 judged while they are on.
 The run stops at ``steps`` (in all, counted over every segment) or before a chunk that would end
 more than ``minutes`` after the script started (setup and compiling included; judged by the
@@ -82,6 +88,7 @@ from mjx_supportfield.driver import install  # noqa: E402
 
 SPEED = 0.05  # m/s (and rad/s) of the random initial velocities
 RESET_SHIFT = 0.05  # m: how far a reset world's robots are moved horizontally from the keyframe
+LIFT_CLEARANCE = 0.002  # m: a reset robot's lowest geom above the ground it was lifted out of
 
 
 def energy(d) -> np.ndarray:
@@ -141,11 +148,12 @@ def check_chunk(d, collider, nworld: int, limit, ground: "Ground") -> tuple:
   e = energy(d)
   overflow = int(np.bitwise_or.reduce(d.overflow.numpy().ravel()))
   stats = collider.stats(d)
-  through = ground.bodies_through(d)
+  off = ground.off_terrain(d)
+  through = ground.geoms_through(d, skip=off)
   row = {"finite": finite, "energy_max": float(np.nanmax(e)), "energy_mean": float(np.nanmean(e)),
          "overflow_bits": overflow, "dropped_pairs": int(sum(stats["dropped_pairs_per_world"])),
          "contacts_per_world": min(int(d.nacon.numpy()[0]), d.naconmax) / nworld,
-         "bodies_through_ground": len(through)}
+         "geoms_through_ground": len(through), "worlds_off_terrain": int(off.sum())}
   bad = []
   if not finite:
     bad.append("non-finite state")
@@ -154,29 +162,41 @@ def check_chunk(d, collider, nworld: int, limit, ground: "Ground") -> tuple:
   if overflow or row["dropped_pairs"]:
     bad.append(f"overflow bits {overflow}, dropped pairs {row['dropped_pairs']}")
   if through:
-    bad.append(f"{len(through)} bodies through the ground, first (world, body) {through[:3]}")
+    bad.append(f"{len(through)} geoms through the ground, first (world, geom) {through[:3]}")
   return row, bad
 
 
 class Ground:
-  """The static geoms (boxes, planes, heightfields) and the bodies that move over them: a moving
-  body's centre of mass inside one of them has gone through the ground."""
+  """The static geoms (boxes, planes, heightfields) and the collision geoms that move over them:
+  a moving geom's centre inside one of them has gone through the ground."""
 
   def __init__(self, mjm):
     self.mjm = mjm
     self.static = real_scenes.static_geoms(mjm)
-    self.moving = [b for b in range(1, mjm.nbody) if mjm.body_weldid[b] != 0 and mjm.body_mass[b] > 0]
+    self.moving = [g for g in range(mjm.ngeom) if mjm.body_weldid[mjm.geom_bodyid[g]] != 0
+                   and (mjm.geom_contype[g] or mjm.geom_conaffinity[g])]
+    self.roots = real_scenes.free_bodies(mjm)
     mjd = mujoco.MjData(mjm)
     mujoco.mj_kinematics(mjm, mjd)  # static geoms sit where they are in every world
     self.geom_xpos, self.geom_xmat = mjd.geom_xpos.copy(), mjd.geom_xmat.copy()
+    self.over = real_scenes.static_extent(mjm, self.static, self.geom_xpos, self.geom_xmat)
 
-  def bodies_through(self, d) -> list:
-    """(world, body name) of every moving body inside the ground."""
+  def off_terrain(self, d) -> np.ndarray:
+    """Per world: whether a free body's root has left the ground, seen from above."""
+    if not self.static or not self.roots:
+      return np.zeros(d.nworld, dtype=bool)
+    return ~self.over(d.xpos.numpy()[:, self.roots, :2]).all(axis=1)
+
+  def geoms_through(self, d, skip=None) -> list:
+    """(world, geom name) of every moving collision geom whose centre is inside the ground, in
+    the worlds ``skip`` (a mask) does not exclude."""
     if not self.static or not self.moving:
       return []
-    xipos = d.xipos.numpy()[:, self.moving]
-    inside = real_scenes.inside_static(self.mjm, xipos, self.geom_xpos, self.geom_xmat, self.static)
-    return [(int(w), self.mjm.body(self.moving[i]).name) for w, i in zip(*np.nonzero(inside))]
+    centres = d.geom_xpos.numpy()[:, self.moving]
+    inside = real_scenes.inside_static(self.mjm, centres, self.geom_xpos, self.geom_xmat, self.static)
+    if skip is not None:
+      inside &= ~np.asarray(skip)[:, None]
+    return [(int(w), self.mjm.geom(self.moving[i]).name) for w, i in zip(*np.nonzero(inside))]
 
 
 class Episodes:
@@ -188,6 +208,7 @@ class Episodes:
     self.rng = np.random.default_rng(1)
     start = real_scenes.initial_data(mjm)
     self.qpos0, self.ctrl0 = start.qpos.copy(), start.ctrl.copy()
+    self.scratch = mujoco.MjData(mjm)  # where a reset pose is checked against the ground
     self.resets = 0
 
   def drive(self, d):
@@ -196,11 +217,12 @@ class Episodes:
       ctrl = self.ctrl0 + self.noise * self.rng.uniform(-1, 1, size=(self.nworld, self.mjm.nu))
       d.ctrl.assign(ctrl.astype(np.float32))
 
-  def reset(self, d, chunk: int):
-    """Resets the worlds whose episode ends after ``chunk``."""
-    if not self.every:
-      return
-    mask = (chunk + np.arange(self.nworld)) % self.every == self.every - 1
+  def reset(self, d, chunk: int, ended=None):
+    """Resets the worlds whose episode ends after ``chunk``, and those ``ended`` marks (a robot
+    off the terrain)."""
+    mask = np.zeros(self.nworld, dtype=bool) if ended is None else np.asarray(ended, dtype=bool).copy()
+    if self.every:
+      mask |= (chunk + np.arange(self.nworld)) % self.every == self.every - 1
     if not mask.any():
       return
     mjw.reset_data(self.m, d, reset=wp.array(mask, dtype=bool))
@@ -210,13 +232,34 @@ class Episodes:
       for b in real_scenes.free_bodies(self.mjm):
         adr = self.mjm.jnt_qposadr[self.mjm.body_jntadr[b]]
         q[adr:adr + 2] += self.rng.uniform(-RESET_SHIFT, RESET_SHIFT, size=2)
-      qpos[w], ctrl[w] = q, self.ctrl0
+      qpos[w], ctrl[w] = self.lifted(q), self.ctrl0
       qvel[w] = SPEED * self.rng.uniform(-1, 1, size=self.mjm.nv)
     d.qpos.assign(qpos)
     d.qvel.assign(qvel)
     d.ctrl.assign(ctrl)
     mjw.forward(self.m, d)
     self.resets += int(mask.sum())
+
+  def lifted(self, qpos: np.ndarray) -> np.ndarray:
+    """``qpos`` with each free body raised until its tree's geoms clear the static ground by
+    LIFT_CLEARANCE (a keyframe shifted over rough terrain can put a foot into a bump)."""
+    mjm, q = self.mjm, qpos.copy()
+    static = set(real_scenes.static_geoms(mjm))
+    for _ in range(4):  # a lift can bring a geom onto a higher neighbour's bump: check again
+      self.scratch.qpos[:] = q
+      mujoco.mj_kinematics(mjm, self.scratch)
+      mujoco.mj_collision(mjm, self.scratch)
+      sink = {}
+      for c in self.scratch.contact[:self.scratch.ncon]:
+        g1, g2 = int(c.geom[0]), int(c.geom[1])
+        if (g1 in static) != (g2 in static) and c.dist < 0:
+          root = int(mjm.body_rootid[mjm.geom_bodyid[g2 if g1 in static else g1]])
+          sink[root] = max(sink.get(root, 0.0), -float(c.dist))
+      if not sink:
+        break
+      for root, depth in sink.items():
+        q[mjm.jnt_qposadr[mjm.body_jntadr[root]] + 2] += depth + LIFT_CLEARANCE
+    return q
 
 
 def record(hist: dict, row: dict, bad: list):
@@ -359,7 +402,7 @@ def main():
     hist["seconds"] = seconds0 + now
     row = {"step": hist["steps"], "segment": segment, "seconds": hist["seconds"], **row}
     record(hist, row, bad)
-    episodes.reset(d, hist["chunks"])
+    episodes.reset(d, hist["chunks"], ground.off_terrain(d))
     print(f"step {row['step']:7d}  {row['seconds']:7.1f} s  energy max {row['energy_max']:.5g}"
           f" mean {row['energy_mean']:.5g}  contacts/world {row['contacts_per_world']:.1f}  {'; '.join(bad) or 'ok'}",
           flush=True)
@@ -385,7 +428,8 @@ def main():
             "energy_initial_max": ref["energy_initial_max"], "energy_bound": ref["energy_bound"],
             "energy_judged": limit is not None, "ctrl_noise": args.ctrl_noise, "reset_every": args.reset_every,
             "worlds_reset_this_segment": episodes.resets,
-            "bodies_through_ground_max": max((r.get("bodies_through_ground", 0) for r in hist["trace"]), default=0),
+            "geoms_through_ground_max": max((r.get("geoms_through_ground", 0) for r in hist["trace"]), default=0),
+            "worlds_off_terrain": sum(r.get("worlds_off_terrain", 0) for r in hist["trace"]),
             "failures": failures,
             "passed": not failures, "versions": {"warp": wp.__version__, "mujoco": mujoco.__version__},
             "complete": complete, "segments": segment, "steps_this_segment": steps - steps0,

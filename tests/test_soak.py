@@ -92,9 +92,10 @@ def _soak_module():
   return soak
 
 
-def test_ground_finds_a_body_through_the_terrain():
-  """The soak's ground check: nothing is through the ground at the keyframe; a robot's trunk moved
-  under the heightfield's surface in one world is reported with that world and body."""
+def test_ground_finds_a_geom_through_the_terrain():
+  """The soak's ground check: nothing is through the ground at the keyframe; a robot moved a metre
+  down in one world has its geoms reported with that world, and one moved off the terrain is
+  off it, its geoms not judged."""
   soak = _soak_module()
   mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
   m = mjw.put_model(mjm)
@@ -102,14 +103,42 @@ def test_ground_finds_a_body_through_the_terrain():
   d = mjw.put_data(mjm, mjd, nworld=3, nconmax=64, njmax=256)
   mjw.kinematics(m, d)
   ground = soak.Ground(mjm)
-  assert ground.bodies_through(d) == []
+  assert ground.geoms_through(d) == []
+  assert not ground.off_terrain(d).any()
   trunk = soak.real_scenes.free_bodies(mjm)[0]
+  adr = mjm.jnt_qposadr[mjm.body_jntadr[trunk]]
   qpos = d.qpos.numpy()
-  qpos[1, mjm.jnt_qposadr[mjm.body_jntadr[trunk]] + 2] -= 1.0  # a metre down: under any tile
+  qpos[1, adr + 2] -= 1.0  # a metre down: under any tile
+  qpos[2, adr:adr + 2] += 10.0  # ten metres away: beyond the terrain, falling
+  qpos[2, adr + 2] -= 1.0
   d.qpos.assign(qpos)
   mjw.kinematics(m, d)
-  assert (1, mjm.body(trunk).name) in ground.bodies_through(d)
-  assert all(w == 1 for w, _ in ground.bodies_through(d))
+  through = ground.geoms_through(d)
+  assert through and all(w == 1 for w, _ in through)
+  assert all(mjm.body_rootid[mjm.geom(name).bodyid[0]] == trunk for _, name in through)
+  np.testing.assert_array_equal(ground.off_terrain(d), [False, False, True])
+
+
+def test_a_reset_lifts_robots_out_of_the_ground():
+  """A reset shifts each robot horizontally from the keyframe and lifts it clear of the bumps it
+  would sink into there: no geom of a reset world is in the ground more than the solver's slack."""
+  soak = _soak_module()
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
+  m = mjw.put_model(mjm)
+  d = mjw.put_data(mjm, soak.real_scenes.initial_data(mjm), nworld=6, nconmax=128, njmax=512)
+  episodes = soak.Episodes(mjm, m, 6, 0.0, 1)
+  soak.RESET_SHIFT, shift = 0.3, soak.RESET_SHIFT  # far enough to land on other bumps
+  try:
+    episodes.reset(d, 0)
+  finally:
+    soak.RESET_SHIFT = shift
+  static = set(soak.real_scenes.static_geoms(mjm))
+  mjd = mujoco.MjData(mjm)
+  for w in range(6):
+    mjd.qpos[:] = d.qpos.numpy()[w]
+    mujoco.mj_forward(mjm, mjd)
+    sunk = [c.dist for c in mjd.contact[:mjd.ncon] if (c.geom[0] in static) != (c.geom[1] in static)]
+    assert min(sunk, default=0.0) > -1e-6, (w, min(sunk))
 
 
 def test_masked_reset_touches_only_the_worlds_it_ends():

@@ -322,20 +322,45 @@ def static_geoms(mjm: mujoco.MjModel) -> list[int]:
 
 
 def _hfield_heights(mjm: mujoco.MjModel, g: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-  """The heightfield's surface height over each (x, y) in its frame (bilinear in the samples),
-  NaN outside it."""
+  """The heightfield's surface height over each (x, y) in its frame, NaN outside it: MuJoCo's
+  surface, each cell split into two triangles along the diagonal from (row, col) to
+  (row + 1, col + 1)."""
   h = mjm.geom_dataid[g]
   nrow, ncol = mjm.hfield_nrow[h], mjm.hfield_ncol[h]
   sx, sy, sz, _ = mjm.hfield_size[h]
   data = mjm.hfield_data[mjm.hfield_adr[h]:mjm.hfield_adr[h] + nrow * ncol].reshape(nrow, ncol)
-  u, v = (x + sx) / (2 * sx) * (ncol - 1), (y + sy) / (2 * sy) * (nrow - 1)
-  c = np.clip(np.floor(u).astype(int), 0, ncol - 2)
-  r = np.clip(np.floor(v).astype(int), 0, nrow - 2)
+  with np.errstate(invalid="ignore"):
+    u, v = (x + sx) / (2 * sx) * (ncol - 1), (y + sy) / (2 * sy) * (nrow - 1)
+    c = np.clip(np.floor(np.nan_to_num(u)).astype(int), 0, ncol - 2)
+    r = np.clip(np.floor(np.nan_to_num(v)).astype(int), 0, nrow - 2)
   fu, fv = u - c, v - r
-  top = data[r, c] * (1 - fu) + data[r, c + 1] * fu
-  bottom = data[r + 1, c] * (1 - fu) + data[r + 1, c + 1] * fu
-  height = (top * (1 - fv) + bottom * fv) * sz
+  h00, h01, h10, h11 = data[r, c], data[r, c + 1], data[r + 1, c], data[r + 1, c + 1]
+  upper = h00 + fu * (h01 - h00) + fv * (h11 - h01)  # fu >= fv: (r, c), (r, c + 1), (r + 1, c + 1)
+  lower = h00 + fv * (h10 - h00) + fu * (h11 - h10)  # fu < fv: (r, c), (r + 1, c), (r + 1, c + 1)
+  height = np.where(fu >= fv, upper, lower) * sz
   return np.where((np.abs(x) > sx) | (np.abs(y) > sy), np.nan, height)
+
+
+def static_extent(mjm: mujoco.MjModel, static: list[int], geom_xpos: np.ndarray, geom_xmat: np.ndarray):
+  """Where the static ground lies, seen from above: a function of (..., 2) world xy points that
+  is True over a static heightfield or box (anywhere, with a static plane)."""
+  rects = []
+  for g in static:
+    kind = int(mjm.geom_type[g])
+    if kind == mujoco.mjtGeom.mjGEOM_PLANE:
+      return lambda xy: np.ones(np.shape(xy)[:-1], dtype=bool)
+    half = mjm.hfield_size[mjm.geom_dataid[g]][:2] if kind == mujoco.mjtGeom.mjGEOM_HFIELD else mjm.geom_size[g][:2]
+    rects.append((geom_xpos[g][:2], geom_xmat[g].reshape(3, 3)[:2, :2], half))
+
+  def over(xy):
+    xy = np.asarray(xy, dtype=float)
+    inside = np.zeros(xy.shape[:-1], dtype=bool)
+    for centre, rot, half in rects:  # boxes and heightfields lie level: their frame's xy axes in the world's xy
+      local = (xy - centre) @ rot
+      inside |= np.all(np.abs(local) <= half, axis=-1)
+    return inside
+
+  return over
 
 
 def inside_static(mjm: mujoco.MjModel, points: np.ndarray, geom_xpos: np.ndarray, geom_xmat: np.ndarray,

@@ -1,7 +1,7 @@
 """A model's first step with the plugin, from an empty kernel cache, split into what compiles.
 
   python benchmarks/first_step.py [MODEL.xml ...] [--device cpu|cuda:0] [--nworld 64] [--json OUT]
-                                  [--keep-mujoco-warp]
+                                  [--keep-mujoco-warp] [--base-cache DIR] [--no-prebuilt]
 
 Each model runs in a fresh process whose Warp kernel cache (``WARP_CACHE_PATH``) and install's
 disk cache start empty: load, ``mjw.put_model``, ``install``, ``mjw.make_data``, one ``mjw.step``.
@@ -10,6 +10,8 @@ kernels, MuJoCo Warp's own modules (paid without the plugin too) and the plugin'
 ``--keep-mujoco-warp`` first fills the cache with MuJoCo Warp's modules alone (a step of the model
 without the plugin, in another process), so that only the plugin's compile; ``--base-cache DIR``
 starts from a copy of kernel cache DIR (``~/.cache/warp``) less the plugin's modules instead.
+The plugin's modules found in a pack of prebuilt binaries (launch/prebuilt.py) load from it
+instead of compiling; ``--no-prebuilt`` ignores the packs, to time a build from source.
 Default models: the suite's 32-mesh pile, models/terrain.xml and quadruped_rough.
 """
 
@@ -78,6 +80,8 @@ def main():
   p.add_argument("--nworld", type=int, default=64)
   p.add_argument("--keep-mujoco-warp", action="store_true")
   p.add_argument("--base-cache", default=None, help="start from a copy of this kernel cache, less the plugin's modules")
+  p.add_argument("--no-prebuilt", action="store_true", help="ignore the packs of prebuilt modules (MJX_SUPPORTFIELD_PREBUILT=off):"
+                 " every module of the plugin compiles")
   p.add_argument("--json", default=None)
   args = p.parse_args()
   models = args.models or [os.path.join(HERE, "scenes", "pile_32_128.xml"), os.path.join(ROOT, "models", "terrain.xml"),
@@ -89,6 +93,8 @@ def main():
       env = {**os.environ, "WARP_CACHE_PATH": os.path.join(cache, "warp"),
              "MJX_SUPPORTFIELD_CACHE": os.path.join(cache, "install"), "PYTHONPATH": ROOT + os.pathsep
              + os.environ.get("PYTHONPATH", "")}
+      if args.no_prebuilt:
+        env["MJX_SUPPORTFIELD_PREBUILT"] = "off"
       if args.base_cache:
         shutil.copytree(args.base_cache, env["WARP_CACHE_PATH"])
         ours = plugin_module_prefixes()
@@ -106,13 +112,14 @@ def main():
            "nworld": args.nworld, "mujoco_warp_cached": bool(args.keep_mujoco_warp or args.base_cache), **r,
            "plugin_first_collision_s": by.get("the plugin's first collision", {}).get("seconds", 0.0),
            "plugin_first_collision_modules": by.get("the plugin's first collision", {}).get("modules", 0),
+           "plugin_modules_prebuilt": sum(s.get("prebuilt", 0) for s in r["stages"]), "prebuilt": not args.no_prebuilt,
            "install_kernels_s": sum(s["seconds"] for s in r["stages"] if s["stage"].startswith("install")),
            "mujoco_warp_first_step_s": by.get("MuJoCo Warp's first step", {}).get("seconds", 0.0)}
     rows.append(row)
     print(f"{row['model']}: install {row['install_s']:.1f} s (its kernels {row['install_kernels_s']:.1f} s), first "
           f"steps {row['first_steps_s']:.1f} s: MuJoCo Warp's modules {row['mujoco_warp_first_step_s']:.1f} s, the "
           f"plugin's first collision {row['plugin_first_collision_s']:.1f} s ({row['plugin_first_collision_modules']} "
-          "modules)", flush=True)
+          f"modules compiled, {row['plugin_modules_prebuilt']} of the plugin's loaded prebuilt)", flush=True)
   if args.json:
     with open(args.json, "w") as f:
       json.dump({"rows": rows, "cpu_count": os.cpu_count()}, f, indent=1)

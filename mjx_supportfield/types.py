@@ -31,10 +31,18 @@ CONVEX_TYPES = (GeomType.SPHERE, GeomType.CAPSULE, GeomType.ELLIPSOID, GeomType.
 # geom types whose pairs go to stock MuJoCo Warp
 STOCK_TYPES = (GeomType.SDF,)
 
+# Warp module options of every plugin module: no adjoints (nothing differentiates through the
+# collision stage), and CPU code for any host of the target (no -march=native), so that a prebuilt
+# CPU module (launch/prebuilt.py) fits every machine and a CPU's contacts are the same bits on each
+MODULE_OPTIONS = {"enable_backward": False, "cpu_compiler_flags": ""}
+# the same for a factory's module="unique" kernel, which takes Warp's global options, not its
+# Python module's (it turns adjoints off in its decorator)
+UNIQUE_MODULE_OPTIONS = {"cpu_compiler_flags": ""}
+
 
 def mode_module(name: str, mode: int, part: str = "") -> str:
   """The Warp module that module ``name``'s kernels for support mode ``mode`` are built in, with
-  ``name``'s module options (enable_backward, fuse_fp); with ``part``, one of that stage's modules.
+  ``name``'s module options (MODULE_OPTIONS, fuse_fp); with ``part``, one of that stage's modules.
 
   One module a mode: a model compiles only the kernels of its own mode, and a second mode in the
   same process adds its own modules instead of rebuilding the first's with both. A stage splits

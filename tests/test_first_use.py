@@ -15,6 +15,7 @@ import mjx_supportfield as sf
 from conftest import bitwise_repeatable
 from conftest import load
 from mjx_supportfield.launch import first_use
+from mjx_supportfield.launch import prebuilt
 from test_install import contact_records
 
 LOAD = wp_context.Module.load  # Warp's own, before any watch
@@ -59,7 +60,9 @@ def test_a_module_not_in_the_cache_is_announced(tmp_path, monkeypatch, caplog):
 
 def _pretend_uncached(monkeypatch):
   """Every module counts as not cached until loaded once under the watch: the notes of a cold
-  cache without building anything."""
+  cache without building anything (and without the packs of prebuilt modules, which would
+  serve them)."""
+  monkeypatch.setenv(prebuilt.ENV, "off")
   noted = set()
   note = first_use._Stage.note
 

@@ -20,8 +20,9 @@ from mjx_supportfield.geometry.support import hull_point
 from mjx_supportfield.geometry.support import support_funcs
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 PADDING = 0.2
 # the distance of a point to a shape without an SDF, and the bake's search radius: past any

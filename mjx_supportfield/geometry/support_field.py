@@ -44,8 +44,9 @@ from mjx_supportfield.geometry.support import hill_climb
 from mjx_supportfield.geometry.support import hull_point
 from mjx_supportfield.geometry.support import hull_scan
 from mjx_supportfield.types import MeshSupport
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 # candidate resolutions, coarse to fine (the cap Options.support_res is always a candidate)
 _RESOLUTIONS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 180, 256, 360, 512, 1024, 2048, 4096)

@@ -31,8 +31,9 @@ from mujoco_warp._src.types import vec5
 
 from mjx_supportfield.launch import contact_sort
 from mjx_supportfield.launch.contact_sort import ContactFields
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 # bytes of one row of each contact field
 _INT = wp.constant(wp.types.type_size_in_bytes(wp.int32))

@@ -16,7 +16,9 @@ from typing import Optional
 import warp as wp
 from mujoco_warp._src.types import vec5
 
-wp.set_module_options({"enable_backward": False})
+from mjx_supportfield.types import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 # contact fields the collision stage writes (efc_address is -1 and surfacevel is computed later)
 FIELDS = (

@@ -34,6 +34,8 @@ from concurrent.futures import ThreadPoolExecutor
 import warp as wp
 from warp._src import context as wp_context
 
+from mjx_supportfield.launch import prebuilt
+
 logger = logging.getLogger("mjx_supportfield")
 if logger.level == logging.NOTSET:
   logger.setLevel(logging.INFO)
@@ -122,6 +124,7 @@ class _Stage:
   def __init__(self, label: str, planned: int = 0, workers: int = 1):
     self.label, self.planned, self.workers = label, planned, workers
     self.count, self.t0, self.device, self.last_line = 0, None, None, 0.0
+    self.prebuilt = 0  # modules loaded from a pack of prebuilt binaries instead (prebuilt.py)
     self.seen = set()  # names noted: a factory's kernel built twice is another variant
 
   def begin(self, device):
@@ -155,11 +158,15 @@ class _Stage:
                   f" ({elapsed:.0f} s so far)" if elapsed >= 1 else "")
 
   def close(self):
+    if self.prebuilt:
+      logger.info("%s: %d kernel module%s loaded prebuilt", self.label, self.prebuilt, "s" if self.prebuilt > 1 else "")
     if self.count:
       seconds = time.perf_counter() - self.t0
       logger.info("  %d module%s compiled in %.0f s; later runs load %s from Warp's kernel cache", self.count,
                   "s" if self.count > 1 else "", seconds, "them" if self.count > 1 else "it")
-      _HISTORY.append({"stage": self.label, "device": self.device.alias, "modules": self.count, "seconds": seconds})
+    if self.count or self.prebuilt:
+      _HISTORY.append({"stage": self.label, "device": (self.device or wp.get_device()).alias, "modules": self.count,
+                       "seconds": time.perf_counter() - self.t0 if self.count else 0.0, "prebuilt": self.prebuilt})
 
 
 _HISTORY = []  # the stages that compiled, in order (compile_history)
@@ -189,15 +196,26 @@ class _Watch:
   def load(self, module, device=None, block_dim=None, *args, **kwargs):
     plan = getattr(self.planning, "plan", None)
     if plan is not None:  # this thread plans a first collision
-      if not args and not kwargs and _will_compile(module, device, block_dim):
+      if not args and not kwargs and self.must_build(module, device, block_dim):
         plan[(id(module), block_dim)] = (module, device, block_dim)
       return None  # wp.launch returns without launching
-    if not args and not kwargs and _will_compile(module, device, block_dim):
+    if not args and not kwargs and self.must_build(module, device, block_dim):
       with self.lock:
-        if self.stage is None:
-          self.stage = _Stage(self.holders[-1] if self.holders else "MuJoCo Warp's first step")
         self.stage.note(module, device)
     return self.original(module, device, block_dim, *args, **kwargs)
+
+  def must_build(self, module, device, block_dim) -> bool:
+    """Whether loading ``module`` compiles it: not in Warp's kernel cache, nor in a pack of
+    prebuilt binaries (prebuilt.place puts it in the cache, counted in the stage's note)."""
+    if not _will_compile(module, device, block_dim):
+      return False
+    placed = prebuilt.place(module, device, block_dim)
+    with self.lock:
+      if self.stage is None:
+        self.stage = _Stage(self.holders[-1] if self.holders else "MuJoCo Warp's first step")
+      if placed:
+        self.stage.prebuilt += 1
+    return not placed
 
   def start(self):
     if self.original is None:
@@ -230,10 +248,12 @@ class _Watch:
 
   def first_collision(self, collider, m, d, awake_prev):
     self.end_stage()  # MuJoCo Warp's kinematics before it
-    planned = self.plan_run(collider, m, d, awake_prev)
-    workers = min(len(planned), _build_workers()) if len(planned) > 1 else 1
     with self.lock:
-      self.stage = _Stage("the plugin's first collision", len(planned), workers)
+      self.stage = _Stage("the plugin's first collision")  # counts the modules the plan finds prebuilt
+    planned = self.plan_run(collider, m, d, awake_prev)
+    with self.lock:
+      self.stage.planned = len(planned)
+      self.stage.workers = min(len(planned), _build_workers()) if len(planned) > 1 else 1
     try:
       self.build(planned)
       collider.collision(m, d, awake_prev)

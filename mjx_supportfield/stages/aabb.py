@@ -4,8 +4,9 @@ import warp as wp
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.types import FAR  # a plane's extent: finite, so sums and comparisons stay defined
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func

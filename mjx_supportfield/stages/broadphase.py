@@ -38,10 +38,10 @@ from mjx_supportfield.stages.aabb import update_aabbs
 from mjx_supportfield.stages.routing import NGEOMTYPE
 from mjx_supportfield.stages.routing import PairQueues
 from mjx_supportfield.stages.routing import queue_pair
+from mjx_supportfield.types import MODULE_OPTIONS
+from mjx_supportfield.types import UNIQUE_MODULE_OPTIONS
 
-# the factories' module="unique" kernels take Warp's global options, not this module's:
-# they turn adjoints off themselves
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.struct
@@ -256,7 +256,7 @@ def sweep_kernel(static_key: tuple, axis: int):
   """
   pair_test = _pair_test(*static_key)
 
-  @wp.kernel(module="unique", enable_backward=False)
+  @wp.kernel(module="unique", module_options=UNIQUE_MODULE_OPTIONS, enable_backward=False)
   def sweep(
     # Model:
     ngeom: int,
@@ -363,7 +363,7 @@ def listed_pairs_kernel(static_key: tuple, direct: bool):
   """
   pair_test = _pair_test(*static_key)
 
-  @wp.kernel(module="unique", enable_backward=False)
+  @wp.kernel(module="unique", module_options=UNIQUE_MODULE_OPTIONS, enable_backward=False)
   def listed_pairs(
     # Model:
     geom_type: wp.array(dtype=int),

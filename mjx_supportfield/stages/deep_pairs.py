@@ -73,8 +73,9 @@ from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 # queue rows per world (pooled over the worlds): a robot whose link meshes overlap at rest has
 # tens of deep answers a world; a pair beyond the queue only keeps MPR's answer (counted)

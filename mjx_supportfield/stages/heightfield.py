@@ -91,6 +91,7 @@ from mjx_supportfield.stages.candidates import write_candidates
 from mjx_supportfield.stages.hfield_cells import heightfield
 from mjx_supportfield.stages.hfield_closed_form import closed_form
 from mjx_supportfield.stages.hfield_closed_form import hfield_closed_form
+from mjx_supportfield.types import MODULE_OPTIONS
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
@@ -126,7 +127,7 @@ from mjx_supportfield.stages.hfield_window import (
 # prism run in hfield_ccd and the same prism run beyond the queue in hfield_contacts gave different
 # contacts; without contraction every operation rounds as written, in each kernel and on the CPU
 # (whose code this option leaves as it was)
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})
+wp.set_module_options({**MODULE_OPTIONS, "fuse_fp": False})
 
 
 @functools.lru_cache(maxsize=None)

@@ -50,8 +50,9 @@ from mjx_supportfield.stages.hfield_window import window_cell
 from mjx_supportfield.types import FAR
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 # where on a triangle its nearest point to a point lies (_closest_on_triangle): inside, on edge
 # k = 0 (v0 v1), 1 (v1 v2), 2 (v2 v0), or at corner k (between edges k - 1 and k)

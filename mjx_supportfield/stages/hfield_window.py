@@ -46,9 +46,10 @@ from mjx_supportfield.stages.hfield_cells import unit_axis
 from mjx_supportfield.stages.routing import NGEOMTYPE
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
+from mjx_supportfield.types import MODULE_OPTIONS
 
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 MAX_CELLS = 4096  # cells visited per pair (a 64 x 64 window)
 # the passes' MPR reruns start half their depth behind the origin, not mpr.BEHIND x scale: from

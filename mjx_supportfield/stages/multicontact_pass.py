@@ -43,8 +43,9 @@ from mjx_supportfield.stages.narrowphase import write_pair_contacts
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func

@@ -60,10 +60,10 @@ from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
+from mjx_supportfield.types import MODULE_OPTIONS
+from mjx_supportfield.types import UNIQUE_MODULE_OPTIONS
 
-# the factories' module="unique" kernels take Warp's global options, not this module's:
-# they turn adjoints off themselves
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 # multi-contact pairs per world left to the tilts (no face clipping) whose tilts run in parallel
@@ -93,7 +93,7 @@ def analytic_kernel(pair_types: tuple, per_world: bool = False):
   world's rows; without it, into the contact arrays themselves (contact_quota.rows)."""
   funcs = [_PRIMITIVE_COLLISIONS[t] for t in pair_types]
 
-  @wp.kernel(module="unique", enable_backward=False)
+  @wp.kernel(module="unique", module_options=UNIQUE_MODULE_OPTIONS, enable_backward=False)
   def analytic_narrowphase(
     # Model:
     geom_type: wp.array(dtype=int),
@@ -376,7 +376,7 @@ def convex_kernel(use_gjk: bool, mode: int):
   mpr_refined_from = mpr_funcs(mode).mpr_refined_from
   sdf_contact = sdf_funcs(mode).sdf_contact
 
-  @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
+  @wp.kernel(module="unique", module_options=UNIQUE_MODULE_OPTIONS, enable_backward=False, cuda_max_registers=HEAVY_REGISTERS)
   def convex_narrowphase(
     # Model:
     geom_type: wp.array(dtype=int),

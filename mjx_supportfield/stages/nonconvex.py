@@ -52,8 +52,9 @@ from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 from mjx_supportfield.types import SupportMode
 from mjx_supportfield.types import mode_module
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 MARKER = "mjx_supportfield.nonconvex"  # custom text listing non-convex geom names
 EDGE_SAMPLES = 16  # most samples along one edge before bisecting

@@ -19,8 +19,9 @@ from mujoco_warp._src.types import DisableBit
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.stages import warmstart
+from mjx_supportfield.types import MODULE_OPTIONS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.kernel

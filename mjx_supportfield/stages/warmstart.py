@@ -28,7 +28,9 @@ import dataclasses
 import numpy as np
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from mjx_supportfield.types import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 NEVER = -(1 << 30)  # stamp of a slot never written
 MAX_SLOTS = 1024  # per world: bounds the memory at nworld x 1024 x 24 bytes

@@ -1,0 +1,161 @@
+"""Prebuilt kernel modules (launch/prebuilt.py): a pack's binary is loaded instead of compiled,
+only for exactly the module it was built from, and gives the contacts a fresh build gives."""
+
+import logging
+import lzma
+import os
+
+import mujoco_warp as mjw
+import numpy as np
+import pytest
+import warp as wp
+from warp._src.context import user_modules
+
+import mjx_supportfield as sf
+from conftest import load
+from mjx_supportfield.launch import first_use
+from mjx_supportfield.launch import prebuilt
+from mjx_supportfield.types import UNIQUE_MODULE_OPTIONS
+
+pytestmark = pytest.mark.cpu_only("CPU binaries: the pack's GPU binaries are checked on the GPU machine")
+
+
+def _kernel(offset: float):
+  @wp.kernel(module="unique", module_options=UNIQUE_MODULE_OPTIONS, enable_backward=False)
+  def add_offset(a: wp.array(dtype=float)):
+    a[wp.tid()] = a[wp.tid()] + wp.static(offset)
+
+  return add_offset
+
+
+def _pack_from(folders: dict, root) -> str:
+  """A pack holding the CPU binary (compressed, as packs hold them) and metadata of each module:
+  {module id: folder they are in}."""
+  for ident, source in folders.items():
+    target = root / f"warp-{wp.__version__}" / ident
+    target.mkdir(parents=True)
+    for name in os.listdir(source):
+      if name.endswith(".meta"):
+        (target / name).write_bytes((source / name).read_bytes())
+      elif name.endswith(".o"):
+        (target / (name + ".xz")).write_bytes(lzma.compress((source / name).read_bytes()))
+  return str(root)
+
+
+@pytest.fixture
+def empty_cache(tmp_path, monkeypatch):
+  """An empty kernel cache, and the test's own kernels taken for the plugin's (packs serve only
+  the plugin's modules)."""
+  cache = tmp_path / "kernels"
+  cache.mkdir()
+  monkeypatch.setattr(wp.config, "kernel_cache_dir", str(cache))
+  monkeypatch.setattr(prebuilt, "is_plugin_module", lambda module: True)
+  return cache
+
+
+def test_a_packed_module_loads_without_compiling(tmp_path, empty_cache, monkeypatch):
+  kernel = _kernel(2.0)
+  module = kernel.module
+  wp.compile_aot_module(module, device="cpu", module_dir=str(tmp_path / "aot"))
+  monkeypatch.setenv(prebuilt.ENV, _pack_from({module.get_module_identifier(): tmp_path / "aot"}, tmp_path / "pack"))
+  module.unload()
+  assert prebuilt.place(module, "cpu")
+  a = wp.ones(4, dtype=float, device="cpu")
+  wp.launch(kernel, dim=4, inputs=[a], device="cpu")
+  np.testing.assert_array_equal(a.numpy(), 3.0)
+  placed = os.listdir(empty_cache / module.get_module_identifier())
+  assert not [f for f in placed if f.endswith(".cpp")], f"Warp compiled it: {placed}"
+
+
+def test_a_changed_module_misses_the_pack(tmp_path, empty_cache, monkeypatch):
+  """A pack built from one kernel's code serves no other: another constant is another hash."""
+  built, changed = _kernel(3.0), _kernel(4.0)
+  wp.compile_aot_module(built.module, device="cpu", module_dir=str(tmp_path / "aot"))
+  monkeypatch.setenv(prebuilt.ENV, _pack_from({built.module.get_module_identifier(): tmp_path / "aot"},
+                                              tmp_path / "pack"))
+  assert changed.module.get_module_identifier() != built.module.get_module_identifier()
+  assert not prebuilt.place(changed.module, "cpu")
+  a = wp.zeros(2, dtype=float, device="cpu")
+  wp.launch(changed, dim=2, inputs=[a], device="cpu")  # compiled as usual
+  np.testing.assert_array_equal(a.numpy(), 4.0)
+
+
+def test_packs_can_be_turned_off(monkeypatch, tmp_path):
+  monkeypatch.setenv(prebuilt.ENV, str(tmp_path))
+  assert prebuilt.pack_roots() == [str(tmp_path), prebuilt.PACKAGE_PACK]
+  monkeypatch.setenv(prebuilt.ENV, "off")
+  assert prebuilt.pack_roots() == []
+
+
+def test_a_device_no_pack_fits_is_named_once(tmp_path, empty_cache, monkeypatch, caplog):
+  """Where the packs hold no binary of the device's target, the plugin says so once, naming the
+  target and what the packs hold, and Warp compiles as usual."""
+  folder = tmp_path / "pack" / f"warp-{wp.__version__}" / "wp_other_module_0000000"
+  folder.mkdir(parents=True)
+  (folder / "wp_other_module_0000000.sm90.cubin.xz").write_bytes(b"")
+  monkeypatch.setattr(prebuilt, "PACKAGE_PACK", str(tmp_path / "pack"))
+  monkeypatch.setattr(prebuilt, "_said", set())
+  monkeypatch.delenv(prebuilt.ENV, raising=False)
+  kernel = _kernel(5.0)
+  with caplog.at_level(logging.INFO, logger="mjx_supportfield"):
+    assert not prebuilt.place(kernel.module, "cpu")
+    assert not prebuilt.place(_kernel(6.0).module, "cpu")
+  notes = [r.getMessage() for r in caplog.records if "no prebuilt kernels" in r.getMessage()]
+  assert len(notes) == 1 and "the packs hold sm90" in notes[0] and "(cpu" in notes[0], notes
+
+
+def test_a_gpu_takes_the_binary_of_its_major_version_below_it(tmp_path):
+  for name in ("m.sm80.cubin.xz", "m.sm90.cubin.xz", "m.sm120.cubin.xz"):
+    (tmp_path / name).write_bytes(b"")
+  found = lambda binary: os.path.basename(prebuilt._binary_for(str(tmp_path), binary) or "")  # noqa: E731
+  assert found("m.sm86.cubin") == "m.sm80.cubin.xz"
+  assert found("m.sm89.cubin") == "m.sm80.cubin.xz"
+  assert found("m.sm90.cubin") == "m.sm90.cubin.xz"
+  assert found("m.sm100.cubin") == ""  # another major: none
+  assert found("m.sm121.cubin") == "m.sm120.cubin.xz"
+  assert found("m.sm75.cubin") == ""
+
+
+def _plugin_modules() -> list:
+  return [m for m in list(user_modules.values()) if m.execs and prebuilt.is_plugin_module(m)]
+
+
+def _first_collision(model: str):
+  """A fresh install of ``model`` and its first collision (first_use's watch on): its contacts."""
+  sim = load(model, nworld=2, naconmax=512)
+  sf.install(sim.mjm, sim.m)
+  mjw.collision(sim.m, sim.d)
+  n = int(sim.d.nacon.numpy()[0])
+  c = sim.d.contact
+  return {k: getattr(c, k).numpy()[:n] for k in ("dist", "pos", "frame", "geom", "worldid")}
+
+
+@pytest.mark.slow
+def test_the_shipped_pack_serves_a_model_as_a_fresh_build_does(tmp_path, monkeypatch):
+  """From an empty kernel cache, the package's pack serves every plugin module of a model's first
+  collision (none compiles), with the contacts of the same modules built afresh, bit for bit (the
+  pack's CPU binaries were built elsewhere, without -march=native). A failure after a kernel
+  change means the pack is stale: python benchmarks/prebuild.py rebuilds it."""
+  if not prebuilt.version_dirs():
+    pytest.fail(f"no pack for Warp {wp.__version__} in {prebuilt.PACKAGE_PACK}: python benchmarks/prebuild.py")
+  model = "convex_pile"
+  _first_collision(model)  # loads the modules, wherever from
+  fresh_cache, packed_cache = tmp_path / "fresh", tmp_path / "packed"
+  runs = {}
+  for name, cache, env in (("fresh", fresh_cache, "off"), ("packed", packed_cache, "")):
+    cache.mkdir()
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(cache))
+    monkeypatch.setenv(prebuilt.ENV, env)
+    for module in _plugin_modules():
+      module.unload()
+    before = len(first_use.compile_history())
+    runs[name] = _first_collision(model), first_use.compile_history()[before:]
+  stages = {s["stage"]: s for s in runs["packed"][1]}
+  collision = stages.get("the plugin's first collision", {})
+  assert collision.get("modules", 0) == 0, f"compiled despite the pack (stale? rebuild it): {runs['packed'][1]}"
+  assert collision.get("prebuilt", 0) >= 3
+  sources = lambda cache: [f for d in os.listdir(cache) for f in os.listdir(cache / d) if f.endswith(".cpp")]  # noqa: E731
+  assert sources(fresh_cache), "the fresh run compiled"
+  assert not sources(packed_cache), "Warp compiled these despite the pack"
+  for key in runs["fresh"][0]:
+    np.testing.assert_array_equal(runs["packed"][0][key], runs["fresh"][0][key], err_msg=key)

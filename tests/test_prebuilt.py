@@ -1,19 +1,17 @@
 """Prebuilt kernel modules (launch/prebuilt.py): a pack's binary is loaded instead of compiled,
 only for exactly the module it was built from, and gives the contacts a fresh build gives."""
 
+import json
 import logging
 import lzma
 import os
+import subprocess
+import sys
 
-import mujoco_warp as mjw
 import numpy as np
 import pytest
 import warp as wp
-from warp._src.context import user_modules
 
-import mjx_supportfield as sf
-from conftest import load
-from mjx_supportfield.launch import first_use
 from mjx_supportfield.launch import prebuilt
 from mjx_supportfield.types import UNIQUE_MODULE_OPTIONS
 
@@ -116,46 +114,59 @@ def test_a_gpu_takes_the_binary_of_its_major_version_below_it(tmp_path):
   assert found("m.sm75.cubin") == ""
 
 
-def _plugin_modules() -> list:
-  return [m for m in list(user_modules.values()) if m.execs and prebuilt.is_plugin_module(m)]
+_CHILD = """
+import json, sys
+import mujoco, mujoco_warp as mjw, numpy as np, warp as wp
+wp.config.log_level = wp.LOG_WARNING
+import mjx_supportfield
+from mjx_supportfield.launch import first_use
+with wp.ScopedDevice("cpu"):
+  mjm = mujoco.MjModel.from_xml_path(sys.argv[1])
+  m = mjw.put_model(mjm)
+  mjx_supportfield.install(mjm, m)
+  d = mjw.make_data(mjm, nworld=2, nconmax=256, njmax=1024)
+  mjw.collision(m, d)
+  n = int(d.nacon.numpy()[0])
+  np.savez(sys.argv[2], **{k: getattr(d.contact, k).numpy()[:n] for k in ("dist", "pos", "frame", "geom", "worldid")})
+print(json.dumps(first_use.compile_history()))
+"""
 
 
-def _first_collision(model: str):
-  """A fresh install of ``model`` and its first collision (first_use's watch on): its contacts."""
-  sim = load(model, nworld=2, naconmax=512)
-  sf.install(sim.mjm, sim.m)
-  mjw.collision(sim.m, sim.d)
-  n = int(sim.d.nacon.numpy()[0])
-  c = sim.d.contact
-  return {k: getattr(c, k).numpy()[:n] for k in ("dist", "pos", "frame", "geom", "worldid")}
+def _fresh_process(model: str, root, pack: str, out) -> list:
+  """The first collision of ``model`` in a new process whose kernel cache (under ``root``) is the
+  test session's less the plugin's modules (linked, not copied), packs as ``pack`` says; its
+  compile history, its contacts in ``out``."""
+  first_step = pytest.importorskip("first_step")  # benchmarks/, on the path in conftest
+  ours = first_step.plugin_module_prefixes()
+  kernels = root / "warp" / wp.__version__
+  kernels.mkdir(parents=True)
+  source = wp.config.kernel_cache_dir
+  for name in os.listdir(source):
+    if not name.startswith(ours) and os.path.isdir(os.path.join(source, name)):
+      (kernels / name).symlink_to(os.path.join(source, name))
+  env = {**os.environ, "WARP_CACHE_PATH": str(root / "warp"), prebuilt.ENV: pack}
+  run = subprocess.run([sys.executable, "-c", _CHILD, model, str(out)], env=env, capture_output=True, text=True)
+  assert run.returncode == 0, run.stderr[-3000:]
+  return json.loads(run.stdout.strip().splitlines()[-1])
 
 
 @pytest.mark.slow
-def test_the_shipped_pack_serves_a_model_as_a_fresh_build_does(tmp_path, monkeypatch):
-  """From an empty kernel cache, the package's pack serves every plugin module of a model's first
-  collision (none compiles), with the contacts of the same modules built afresh, bit for bit (the
-  pack's CPU binaries were built elsewhere, without -march=native). A failure after a kernel
-  change means the pack is stale: python benchmarks/prebuild.py rebuilds it."""
+def test_the_shipped_pack_serves_a_model_as_a_fresh_build_does(tmp_path):
+  """In a new process with the plugin's modules out of the kernel cache, the package's pack
+  serves every plugin module of a model's first collision (none compiles), with the contacts of
+  the same modules built afresh in another such process, bit for bit (the pack's CPU binaries
+  were built elsewhere, without -march=native). A failure after a kernel change means the pack
+  is stale: python benchmarks/prebuild.py rebuilds it."""
   if not prebuilt.version_dirs():
     pytest.fail(f"no pack for Warp {wp.__version__} in {prebuilt.PACKAGE_PACK}: python benchmarks/prebuild.py")
-  model = "convex_pile"
-  _first_collision(model)  # loads the modules, wherever from
-  fresh_cache, packed_cache = tmp_path / "fresh", tmp_path / "packed"
-  runs = {}
-  for name, cache, env in (("fresh", fresh_cache, "off"), ("packed", packed_cache, "")):
-    cache.mkdir()
-    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(cache))
-    monkeypatch.setenv(prebuilt.ENV, env)
-    for module in _plugin_modules():
-      module.unload()
-    before = len(first_use.compile_history())
-    runs[name] = _first_collision(model), first_use.compile_history()[before:]
-  stages = {s["stage"]: s for s in runs["packed"][1]}
-  collision = stages.get("the plugin's first collision", {})
-  assert collision.get("modules", 0) == 0, f"compiled despite the pack (stale? rebuild it): {runs['packed'][1]}"
-  assert collision.get("prebuilt", 0) >= 3
-  sources = lambda cache: [f for d in os.listdir(cache) for f in os.listdir(cache / d) if f.endswith(".cpp")]  # noqa: E731
-  assert sources(fresh_cache), "the fresh run compiled"
-  assert not sources(packed_cache), "Warp compiled these despite the pack"
-  for key in runs["fresh"][0]:
-    np.testing.assert_array_equal(runs["packed"][0][key], runs["fresh"][0][key], err_msg=key)
+  model = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "models", "convex_pile.xml")
+  fresh = _fresh_process(model, tmp_path / "fresh", "off", tmp_path / "fresh.npz")
+  packed = _fresh_process(model, tmp_path / "packed", "", tmp_path / "packed.npz")
+  by = {s["stage"]: s for s in packed}
+  assert by.get("the plugin's first collision", {}).get("modules", 0) == 0, f"compiled despite the pack: {packed}"
+  assert sum(s.get("prebuilt", 0) for s in packed) >= 3
+  assert sum(s["modules"] for s in fresh) >= 3, f"the fresh process compiled: {fresh}"
+  a, b = np.load(tmp_path / "fresh.npz"), np.load(tmp_path / "packed.npz")
+  assert len(a["dist"]) > 0
+  for key in a.files:
+    np.testing.assert_array_equal(b[key], a[key], err_msg=key)

@@ -26,6 +26,14 @@ def _kernel(offset: float):
   return add_offset
 
 
+def _build_for_cpu(module, folder) -> str:
+  """Compiles ``module`` as a CPU launch loads it (block size 1) into ``folder``, as
+  benchmarks/prebuild.py does; returns its id."""
+  module.get_module_hash(1)
+  module._compile(wp.get_device("cpu"), str(folder), options=module.resolved_options[1])
+  return module.get_module_identifier(1)
+
+
 def _pack_from(folders: dict, root) -> str:
   """A pack holding the CPU binary (compressed, as packs hold them) and metadata of each module:
   {module id: folder they are in}."""
@@ -54,28 +62,46 @@ def empty_cache(tmp_path, monkeypatch):
 def test_a_packed_module_loads_without_compiling(tmp_path, empty_cache, monkeypatch):
   kernel = _kernel(2.0)
   module = kernel.module
-  wp.compile_aot_module(module, device="cpu", module_dir=str(tmp_path / "aot"))
-  monkeypatch.setenv(prebuilt.ENV, _pack_from({module.get_module_identifier(): tmp_path / "aot"}, tmp_path / "pack"))
+  ident = _build_for_cpu(module, tmp_path / "aot")
+  monkeypatch.setenv(prebuilt.ENV, _pack_from({ident: tmp_path / "aot"}, tmp_path / "pack"))
   module.unload()
-  assert prebuilt.place(module, "cpu")
+  assert prebuilt.place(module, "cpu", 1)
   a = wp.ones(4, dtype=float, device="cpu")
   wp.launch(kernel, dim=4, inputs=[a], device="cpu")
   np.testing.assert_array_equal(a.numpy(), 3.0)
-  placed = os.listdir(empty_cache / module.get_module_identifier())
+  assert os.listdir(empty_cache) == [ident], "Warp loaded another variant"
+  placed = os.listdir(empty_cache / ident)
   assert not [f for f in placed if f.endswith(".cpp")], f"Warp compiled it: {placed}"
 
 
 def test_a_changed_module_misses_the_pack(tmp_path, empty_cache, monkeypatch):
   """A pack built from one kernel's code serves no other: another constant is another hash."""
   built, changed = _kernel(3.0), _kernel(4.0)
-  wp.compile_aot_module(built.module, device="cpu", module_dir=str(tmp_path / "aot"))
-  monkeypatch.setenv(prebuilt.ENV, _pack_from({built.module.get_module_identifier(): tmp_path / "aot"},
+  monkeypatch.setenv(prebuilt.ENV, _pack_from({_build_for_cpu(built.module, tmp_path / "aot"): tmp_path / "aot"},
                                               tmp_path / "pack"))
-  assert changed.module.get_module_identifier() != built.module.get_module_identifier()
-  assert not prebuilt.place(changed.module, "cpu")
+  assert changed.module.get_module_identifier(1) != built.module.get_module_identifier(1)
+  assert not prebuilt.place(changed.module, "cpu", 1)
   a = wp.zeros(2, dtype=float, device="cpu")
   wp.launch(changed, dim=2, inputs=[a], device="cpu")  # compiled as usual
   np.testing.assert_array_equal(a.numpy(), 4.0)
+
+
+def test_an_unreadable_pack_file_falls_back_to_compiling(tmp_path, empty_cache, monkeypatch, caplog):
+  """A pack file that cannot be read (cut short) is noted once and the module compiles as usual."""
+  kernel = _kernel(7.0)
+  module = kernel.module
+  pack = _pack_from({_build_for_cpu(module, tmp_path / "aot"): tmp_path / "aot"}, tmp_path / "pack")
+  for f in (tmp_path / "pack").rglob("*.xz"):
+    f.write_bytes(f.read_bytes()[:20])  # cut short
+  monkeypatch.setenv(prebuilt.ENV, pack)
+  monkeypatch.setattr(prebuilt, "_said", set())
+  module.unload()
+  with caplog.at_level(logging.WARNING, logger="mjx_supportfield"):
+    assert not prebuilt.place(module, "cpu", 1)
+  assert any("could not place module" in r.getMessage() for r in caplog.records)
+  a = wp.zeros(2, dtype=float, device="cpu")
+  wp.launch(kernel, dim=2, inputs=[a], device="cpu")
+  np.testing.assert_array_equal(a.numpy(), 7.0)
 
 
 def test_packs_can_be_turned_off(monkeypatch, tmp_path):

@@ -59,10 +59,23 @@ def version_dirs() -> list[str]:
 
 def place(module, device, block_dim=None) -> bool:
   """Copies ``module``'s prebuilt binary for ``device`` and its metadata into Warp's kernel cache,
-  where Warp's load finds them; False where no pack holds them (Warp then compiles it) and for a
-  module that is not the plugin's."""
+  where Warp's load finds them; False where no pack holds them (Warp then compiles it), for a
+  module that is not the plugin's, and where the copy fails (a cache folder that cannot be
+  written, an unreadable pack file: noted once; Warp compiles as without a pack)."""
   if not wp.config.cache_kernels or not is_plugin_module(module):
     return False
+  try:
+    return _place(module, device, block_dim)
+  except Exception as error:  # a pack must never cost more than the compile it saves
+    if "failed" not in _said:
+      _said.add("failed")
+      logging.getLogger("mjx_supportfield").warning(
+        "prebuilt kernels: could not place module %s (%s: %s); compiling it and any others as usual", module.name,
+        type(error).__name__, error)
+    return False
+
+
+def _place(module, device, block_dim) -> bool:
   device = wp.get_device(device)
   block_dim = module.options["block_dim"] if block_dim is None else block_dim
   ident = module.get_module_identifier(block_dim)

@@ -209,6 +209,7 @@ class Episodes:
     start = real_scenes.initial_data(mjm)
     self.qpos0, self.ctrl0 = start.qpos.copy(), start.ctrl.copy()
     self.scratch = mujoco.MjData(mjm)  # where a reset pose is checked against the ground
+    self.static = set(real_scenes.static_geoms(mjm))
     self.resets = 0
 
   def drive(self, d):
@@ -243,8 +244,7 @@ class Episodes:
   def lifted(self, qpos: np.ndarray) -> np.ndarray:
     """``qpos`` with each free body raised until its tree's geoms clear the static ground by
     LIFT_CLEARANCE (a keyframe shifted over rough terrain can put a foot into a bump)."""
-    mjm, q = self.mjm, qpos.copy()
-    static = set(real_scenes.static_geoms(mjm))
+    mjm, q, static = self.mjm, qpos.copy(), self.static
     for _ in range(4):  # a lift can bring a geom onto a higher neighbour's bump: check again
       self.scratch.qpos[:] = q
       mujoco.mj_kinematics(mjm, self.scratch)

@@ -144,20 +144,19 @@ class Collider:
       max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
       nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
-      # the pair classes routed to MuJoCo Warp's narrow phase (Options.stock_pair_classes)
-      routed_types = routing.stock_types(routing.pair_types_present(mjm, pairs),
-                                         {routing.PairClass.named(c) for c in options.stock_pair_classes})
-      routed = (np.array([(GeomType(a), GeomType(b)) in routed_types for a, b in zip(t1, t2)], bool)
-                & ~flags[pairs].any(axis=1)) if len(pairs) else np.zeros(0, bool)
-      to_stock = (stock[pairs].any(axis=1) if len(pairs) else np.zeros(0, bool)) | sensor | routed
-      self.has_stock_pairs = bool(to_stock.any())
+      # the pair classes routed to MuJoCo Warp's narrow phase (Options.stock_pair_classes), by the
+      # table the broad phase routes them with
+      type_stock = routing.stock_type_table(routing.stock_types(
+        routing.pair_types_present(mjm, pairs), {routing.PairClass.named(c) for c in options.stock_pair_classes}))
+      routed = (type_stock[t1 * routing.NGEOMTYPE + t2] != 0) & ~flags[pairs].any(axis=1)
+      self.has_stock_pairs = bool((stock[pairs].any(axis=1) | sensor | routed).any())
       # MuJoCo Warp's kernels for the routed types only, unless pairs of any type can reach it
       self.stock_types = None if bool(stock.any()) or bool(sensor.any()) else frozenset(
         (GeomType(a), GeomType(b)) for a, b in zip(t1[routed], t2[routed]))
       self.broad = broadphase.BroadPhase(
         mjm.ngeom, nxn, max_pairs, len(pairs), wp.array(pairs[explicit].astype(np.int32), dtype=wp.vec2i),
         wp.array(pairids[explicit].astype(np.int32), dtype=wp.vec2i), self.geom_stock,
-        wp.array(routing.stock_type_table(routed_types), dtype=int), options.sap_axis)
+        wp.array(type_stock, dtype=int), options.sap_axis)
 
       kept = ~routed  # the pairs not routed away by class (those of MuJoCo Warp's own geoms count, as bounds)
       present = routing.pair_types_present(mjm, pairs[kept])

@@ -100,13 +100,11 @@ def stock_narrowphase(m, d, ctx, types: Optional[frozenset]) -> None:
   if types is None:
     collision_driver._narrowphase(m, d, ctx)
     return
-  table = collision_driver.MJ_COLLISION_TABLE
-  box_box = (GeomType.BOX, GeomType.BOX)
-  native_ccd = not m.opt.disableflags & DisableBit.NATIVECCD  # else box-box is a primitive pair, as in MuJoCo Warp
-  kind = {t: CollisionType.CONVEX if t == box_box and native_ccd else
-          CollisionType.PRIMITIVE if t == box_box else table[t] for t in types}
-  convex = [t for t in table if kind.get(t) == CollisionType.CONVEX]
-  primitive = [t for t in table if kind.get(t) == CollisionType.PRIMITIVE]
+  table = dict(collision_driver.MJ_COLLISION_TABLE)
+  if m.opt.disableflags & DisableBit.NATIVECCD:  # MuJoCo Warp's own rule (collision_driver._narrowphase)
+    table[(GeomType.BOX, GeomType.BOX)] = CollisionType.PRIMITIVE
+  convex = [t for t, kind in table.items() if t in types and kind == CollisionType.CONVEX]
+  primitive = [t for t, kind in table.items() if t in types and kind == CollisionType.PRIMITIVE]
   if convex:
     convex_narrowphase(m, d, ctx, convex)
   if primitive:

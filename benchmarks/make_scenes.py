@@ -108,13 +108,24 @@ def layers(side: int, nlayer: int, seed: int = 0, kinds: tuple = PRIMITIVE_KINDS
   return HEADER.format(name=name) + assets + f"  <worldbody>\n{FLOOR}{''.join(bodies)}  </worldbody>\n</mujoco>\n"
 
 
+# the kinds dropped on bumps for each heightfield pair class
+HFIELD_CLASS_KINDS = {
+  "hfield_round": ("sphere", "capsule"),
+  "hfield_prism": ("box", "cylinder", "ellipsoid", "mesh"),
+}
+TERRAIN_KINDS = ("sphere", "capsule", "box", "cylinder", "ellipsoid", "mesh")
+
+
 def class_scenes() -> dict:
-  """A stack of 48 geoms a pair class (CLASS_KINDS), for the cost model (cost_model.py):
-  cost_<class>.xml. The heightfield class's scene is terrain_32."""
-  return {f"cost_{c}.xml": layers(4, 3, seed=1, kinds=kinds, name=f"cost_{c}") for c, kinds in CLASS_KINDS.items()}
+  """A scene a pair class, for the cost model (cost_model.py): cost_<class>.xml, a stack of 48
+  geoms (CLASS_KINDS), or for the heightfield classes 32 geoms dropped on bumps (HFIELD_CLASS_KINDS)."""
+  scenes = {f"cost_{c}.xml": layers(4, 3, seed=1, kinds=kinds, name=f"cost_{c}") for c, kinds in CLASS_KINDS.items()}
+  scenes.update({f"cost_{c}.xml": terrain(32, seed=1, kinds=kinds, name=f"cost_{c}")
+                 for c, kinds in HFIELD_CLASS_KINDS.items()})
+  return scenes
 
 
-def terrain(n: int, seed: int = 0) -> str:
+def terrain(n: int, seed: int = 0, kinds: tuple = TERRAIN_KINDS, name: str = "") -> str:
   rng = np.random.default_rng(seed)
   nrow = ncol = 64
   x = np.linspace(0, 4 * np.pi, ncol)
@@ -124,7 +135,6 @@ def terrain(n: int, seed: int = 0) -> str:
     f'    <mesh name="m{k}" vertex="{" ".join(f"{v:.5f}" for v in ellipsoid_points(rng, 64).ravel())}"/>\n'
     for k in range(n // 6 + 1)
   )
-  kinds = ["sphere", "capsule", "box", "cylinder", "ellipsoid", "mesh"]
   bodies = []
   for k, (x0, y0, z0) in enumerate(_lattice(n, 0.15, 0.25)):
     kind = kinds[k % len(kinds)]
@@ -134,8 +144,10 @@ def terrain(n: int, seed: int = 0) -> str:
              "ellipsoid": f'size="{s[0]:.3f} {s[1]:.3f} {s[2]:.3f}"', "mesh": f'mesh="m{k // 6}"'}[kind]
     bodies.append(f'    <body name="b{k}" pos="{x0:.3f} {y0:.3f} {z0:.3f}"><freejoint/>'
                   f'<geom name="g{k}" type="{kind}" {attrs}/></body>\n')
-  return (HEADER.format(name=f"terrain_{n}") + f'  <asset>\n    <hfield name="bumps" nrow="{nrow}" ncol="{ncol}" '
-          f'size="1.5 1.5 0.1 0.05" elevation="{elevation}"/>\n{meshes}  </asset>\n  <worldbody>\n'
+  meshes = meshes if "mesh" in kinds else ""  # made all the same: the bodies' sizes draw after them
+  return (HEADER.format(name=name or f"terrain_{n}") + '  <asset>\n    <hfield name="bumps" '
+          f'nrow="{nrow}" ncol="{ncol}" size="1.5 1.5 0.1 0.05" elevation="{elevation}"/>\n{meshes}  </asset>\n'
+          '  <worldbody>\n'
           '    <geom name="terrain" type="hfield" hfield="bumps"/>\n    <light pos="0 0 3" dir="0 0 -1"/>\n'
           f"{''.join(bodies)}  </worldbody>\n</mujoco>\n")
 

@@ -10,7 +10,7 @@ SUPPORT_MODES = ("field", "refined", "exact")
 NARROWPHASES = ("mpr", "gjk")
 BROADPHASES = ("auto", "nxn", "sap")
 # the pair classes of Options.stock_pair_classes (stages/routing.py's PairClass)
-PAIR_CLASSES = ("analytic", "primitive", "mesh", "mesh_mesh", "hfield")
+PAIR_CLASSES = ("analytic", "primitive", "mesh", "mesh_mesh", "hfield_round", "hfield_prism")
 # "auto" takes nxn up to this many pairs after MuJoCo's static filters, sweep-and-prune beyond
 NXN_MAX_PAIRS = 16384
 
@@ -122,9 +122,14 @@ class Options:
       both ways): "analytic" (MuJoCo's closed forms: plane against a geom, sphere and capsule
       pairs, box-box; through the plugin the same routines), "primitive" (other pairs of convex
       primitives: cylinders, ellipsoids), "mesh" (a convex mesh against a primitive), "mesh_mesh",
-      "hfield" (a heightfield against a convex geom). Default () (none). Their contacts are
-      MuJoCo Warp's (GJK/EPA and its multi-contact for the convex pairs), written after the
-      plugin's; non-convex meshes stay the plugin's. A model whose every pair is routed there
+      "hfield_round" (a sphere or capsule on a heightfield: the plugin's closed form per
+      triangle), "hfield_prism" (a box, cylinder, ellipsoid or convex mesh on a heightfield: the
+      plugin's MPR per triangle prism). Default () (none): by docs/performance.md's cost model
+      the plugin's kernels are the faster for every class but the heightfield's, where MuJoCo
+      Warp's are faster and let a box and an ellipsoid sink through models/terrain.xml, which
+      the plugin's prisms hold. Their contacts are MuJoCo Warp's
+      (GJK/EPA and its multi-contact for the convex pairs), written after the plugin's;
+      non-convex meshes stay the plugin's. A model whose every pair is routed there
       (and with nothing for the plugin's broad phase to do, as for stock_for_analytic_models)
       collides through MuJoCo Warp's own collision stage.
   """

@@ -291,10 +291,11 @@ STEPS = 2500
 
 @pytest.fixture(scope="module")
 def dropped():
-  """models/terrain.xml stepped by the plugin through mjw.step (and MuJoCo C for reference)."""
+  """models/terrain.xml stepped by the plugin through mjw.step (and MuJoCo C for reference): the
+  simulation, each body's lowest clearance and the largest joint speed at each snapshot."""
   sim = load("terrain")
   sf.install(sim.mjm, sim.m)
-  lowest = {}
+  lowest, speeds = {}, []
   for i in range(STEPS):
     mjw.step(sim.m, sim.d)
     if i % 50 == 49:
@@ -303,7 +304,8 @@ def dropped():
       mujoco.mj_kinematics(sim.mjm, mjd)
       for name, h in _surface_clearance(sim.mjm, mjd).items():
         lowest[name] = min(lowest.get(name, np.inf), h)
-  return sim, lowest
+      speeds.append(float(np.abs(sim.d.qvel.numpy()).max()))
+  return sim, lowest, speeds
 
 
 def test_terrain_scene_matches_generator():
@@ -313,7 +315,7 @@ def test_terrain_scene_matches_generator():
 
 @pytest.mark.slow
 def test_every_body_stays_on_the_terrain(dropped):
-  sim, lowest = dropped
+  sim, lowest, _ = dropped
   assert np.all(np.isfinite(sim.d.qpos.numpy()))
   assert set(lowest) == {b[0] for b in make_terrain.BODIES}
   for name, clearance in lowest.items():
@@ -322,8 +324,12 @@ def test_every_body_stays_on_the_terrain(dropped):
 
 
 def test_bodies_come_to_rest_on_it(dropped):
-  sim, _ = dropped
-  assert np.abs(sim.d.qvel.numpy()).max() < 0.2
+  """In the last second every body is still at once, at some snapshot. Not at one fixed instant:
+  a body balanced on a bump may tip over late and roll into a hollow (MuJoCo C's own run of this
+  scene reads 0.21 rad/s at 5 s and 0.82 at 6 s), and on a GPU the contact rows' order, hence the
+  trajectory, differs from run to run. Contacts that never let the bodies settle fail it."""
+  sim, _, speeds = dropped
+  assert min(speeds[-10:]) < 0.1, speeds[-10:]
   assert int(sim.d.nacon.numpy()[0]) >= len(make_terrain.BODIES)
 
 

@@ -72,7 +72,7 @@ def _assert_same(a: dict, b: dict):
 @pytest.mark.parametrize("routed", PAIR_CLASSES)
 def test_routed_class_gets_stock_contacts_the_rest_the_plugins(routed):
   stock, _, _ = _collide(plugin=False)
-  plugin, _, _ = _collide()
+  plugin, _, _ = _collide(sf.Options(stock_pair_classes=()))
   mixed, collider, sim = _collide(sf.Options(stock_pair_classes=(routed,)))
   assert set(stock) == set(PAIR_CLASSES), "every class in the model touches"
   assert not collider.stock_path
@@ -95,7 +95,7 @@ def test_every_class_routed_collides_through_stock():
 def test_nonconvex_mesh_stays_the_plugins():
   """A non-convex mesh's pairs are the plugin's whatever their class: MuJoCo Warp has only its hull."""
   options = {"nonconvex_geoms": ("m1",)}
-  own, _, sim = _collide(sf.Options(**options))
+  own, _, sim = _collide(sf.Options(stock_pair_classes=(), **options))
   routed, collider, _ = _collide(sf.Options(stock_pair_classes=("mesh", "analytic"), **options))
   m1 = sim.mjm.geom("m1").id
   for name in ("mesh", "analytic"):  # the mesh on the box, the floor under the mesh

@@ -108,7 +108,8 @@ class PairClass(enum.IntEnum):
   PRIMITIVE = 1  # other pairs of convex primitives (cylinders, ellipsoids): MPR and multi-contact
   MESH = 2  # a convex mesh against a primitive
   MESH_MESH = 3  # two convex meshes
-  HFIELD = 4  # a heightfield against a convex geom
+  HFIELD_ROUND = 4  # a sphere or capsule on a heightfield: the closed-form pass (hfield_closed_form.py)
+  HFIELD_PRISM = 5  # another convex geom on a heightfield: its triangle prisms by MPR (heightfield.py)
 
   @classmethod
   def of(cls, type1: GeomType, type2: GeomType) -> "PairClass":
@@ -116,7 +117,7 @@ class PairClass(enum.IntEnum):
     if (type1, type2) in ANALYTIC_PAIRS:
       return cls.ANALYTIC
     if type1 == GeomType.HFIELD:
-      return cls.HFIELD
+      return cls.HFIELD_ROUND if type2 in (GeomType.SPHERE, GeomType.CAPSULE) else cls.HFIELD_PRISM
     if type1 == GeomType.MESH:  # both meshes: types are ordered
       return cls.MESH_MESH
     return cls.MESH if type2 == GeomType.MESH else cls.PRIMITIVE

@@ -391,7 +391,7 @@ def _pack(
     if slot >= world_kept[worldid]:
       return
     j = world_start[worldid] + slot
-  contact_sort._move(src, i, dst, j)
+  contact_sort.move_row(src, i, dst, j)
   if i < nrow and dst.flex.shape[0] > 0:
     dst.flex[j] = wp.vec2i(-1)
     dst.elem[j] = wp.vec2i(-1)
@@ -427,7 +427,7 @@ def pack(d, buf: QuotaBuffers, fields: tuple, warn: bool) -> None:
   wp.launch(_kept_per_world, dim=d.nworld, inputs=[per_world, n, warn, d.nacon, buf.quota.world_ncon],
             outputs=[buf.world_kept, buf.stock_dropped, d.overflow, buf.nwarned])
   wp.utils.array_scan(buf.world_kept, buf.world_start, inclusive=False)
-  wp.launch(contact_sort._copy, dim=n, inputs=[n, d.nacon, contact], outputs=[copy])
+  wp.launch(contact_sort.copy_rows, dim=n, inputs=[n, d.nacon, contact], outputs=[copy])
   wp.launch(_pack, dim=n, inputs=[per_world, n, d.nacon, buf.world_kept, buf.world_start, copy],
             outputs=[contact, d.contact.efc_address])
   wp.launch(_packed_count, dim=1, inputs=[per_world, n, buf.world_kept, buf.world_start], outputs=[d.nacon])

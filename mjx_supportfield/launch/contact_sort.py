@@ -125,7 +125,7 @@ def _sort_keys(
 
 
 @wp.func
-def _move(src: ContactFields, i: int, dst: ContactFields, j: int):
+def move_row(src: ContactFields, i: int, dst: ContactFields, j: int):
   """dst[j] = src[i] for every field."""
   dst.dist[j] = src.dist[i]
   dst.pos[j] = src.pos[i]
@@ -148,10 +148,10 @@ def _move(src: ContactFields, i: int, dst: ContactFields, j: int):
 
 
 @wp.kernel
-def _copy(naconmax: int, nacon: wp.array(dtype=int), src: ContactFields, dst: ContactFields):
+def copy_rows(naconmax: int, nacon: wp.array(dtype=int), src: ContactFields, dst: ContactFields):
   i = wp.tid()
   if i < wp.min(nacon[0], naconmax):
-    _move(src, i, dst, i)
+    move_row(src, i, dst, i)
 
 
 @wp.kernel
@@ -160,7 +160,7 @@ def _gather(naconmax: int, nacon: wp.array(dtype=int), index: wp.array(dtype=wp.
   """Slot i of every contact field takes slot index[i] of the copy."""
   i = wp.tid()
   if i < wp.min(nacon[0], naconmax):
-    _move(src, index[i], dst, i)
+    move_row(src, index[i], dst, i)
 
 
 def sort_contacts(d, buf: SortBuffers, ngeom: int) -> None:
@@ -173,5 +173,5 @@ def sort_contacts(d, buf: SortBuffers, ngeom: int) -> None:
   wp.launch(_sort_keys, dim=n, inputs=[ngeom + 1, wp.int64(nkey), n, d.nacon, c.worldid, c.geom],
             outputs=[buf.keys, buf.index])
   wp.utils.radix_sort_pairs(buf.keys, buf.index, n, end_bit=buf.end_bit)
-  wp.launch(_copy, dim=n, inputs=[n, d.nacon, buf.contact], outputs=[buf.copy])
+  wp.launch(copy_rows, dim=n, inputs=[n, d.nacon, buf.contact], outputs=[buf.copy])
   wp.launch(_gather, dim=n, inputs=[n, d.nacon, buf.index, buf.copy], outputs=[buf.contact])

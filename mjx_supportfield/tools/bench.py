@@ -118,10 +118,10 @@ def _time_collision_in_steps(m, d, launches: int) -> Optional[float]:
         mjw.step(m, d)
   finally:
     collision_driver.collision = inner
-  return _replay_events(capture.graph, calls, launches)
+  return replay_events(capture.graph, calls, launches)
 
 
-def _replay_events(graph, calls: list, launches: int) -> float:
+def replay_events(graph, calls: list, launches: int) -> float:
   """Milliseconds per timed call: replays ``graph`` (one warm-up, then about ``launches`` calls)
   and sums the (start, end) event pairs it records."""
   wp.capture_launch(graph)  # warm
@@ -152,7 +152,7 @@ def _time_collision_frozen(mjm, mjd, m, nworld: int, nconmax: int, njmax: int, l
       mjw.collision(m, d)
       wp.record_event(end)
       calls.append((start, end))
-  return _replay_events(capture.graph, calls, launches)
+  return replay_events(capture.graph, calls, launches)
 
 
 def scene_name(path: str) -> str:

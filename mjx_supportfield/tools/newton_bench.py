@@ -414,7 +414,7 @@ def _time_calls(prepare: Callable[[int], None], call: Callable[[], None], ncalls
       events.append((start, end))
     return events
 
-  from mjx_supportfield.tools.bench import _replay_events
+  from mjx_supportfield.tools.bench import replay_events
 
   try:
     with wp.ScopedCapture() as capture:
@@ -429,7 +429,7 @@ def _time_calls(prepare: Callable[[int], None], call: Callable[[], None], ncalls
       wp.synchronize()
       total += sum(wp.get_event_elapsed_time(s, e) for s, e in events)
     return total / (replays * ncalls), how
-  return _replay_events(capture.graph, events, launches), "events in a CUDA graph"
+  return replay_events(capture.graph, events, launches), "events in a CUDA graph"
 
 
 def evolving_poses(mjm: mujoco.MjModel, mjd: mujoco.MjData, nworld: int, nsteps: int,

@@ -127,9 +127,9 @@ class Options:
       plugin's MPR per triangle prism). Default () (none): by docs/performance.md's cost model
       the plugin's kernels are the faster for every class but the heightfield's, where MuJoCo
       Warp's are faster and let a box and an ellipsoid sink through models/terrain.xml, which
-      the plugin's prisms hold. Their contacts are MuJoCo Warp's
-      (GJK/EPA and its multi-contact for the convex pairs), written after the plugin's;
-      non-convex meshes stay the plugin's. A model whose every pair is routed there
+      the plugin's prisms hold. Their contacts are MuJoCo Warp's (GJK/EPA and its
+      multi-contact for the convex pairs), written after the plugin's; non-convex meshes stay
+      the plugin's. A model whose every pair is routed there
       (and with nothing for the plugin's broad phase to do, as for stock_for_analytic_models)
       collides through MuJoCo Warp's own collision stage.
   """

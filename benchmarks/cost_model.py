@@ -14,8 +14,8 @@ MuJoCo Warp's narrow phase. The class goes to whichever is faster: the routed co
 plugin's says what routing it gains on a scene that holds it, the stock column what stock's
 whole stage costs. ``--scenes`` times whole scenes instead (stock, the plugin, and the plugin with
 each ``--routings`` set of classes sent to MuJoCo Warp: ``;`` between sets, ``+`` within one), to
-check a routing rule on scenes that mix classes. Writes the rows (bench.Row fields plus ``variant``) as JSON with the device's
-name, and a markdown table for docs/performance.md.
+check a routing rule on scenes that mix classes. Writes the rows (bench.Row fields plus
+``variant``) as JSON with the device's name, and a markdown table for docs/performance.md.
 """
 
 import argparse

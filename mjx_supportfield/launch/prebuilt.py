@@ -4,9 +4,10 @@ Warp names a compiled module after a hash of its code and options (``wp_<module>
 looks for it in its kernel cache before it compiles. A pack holds such binaries: one folder per
 module, named as in Warp's cache, with each target's binary xz-compressed (``<id>.cpu<target>.o.xz``,
 ``<id>.sm<arch>.cubin.xz``: a third of gzip's size, unpacked in milliseconds) and the module's
-metadata, under ``warp-<version>/`` of the Warp that built them. Before Warp would compile one of the plugin's modules (first_use.py's watch sees each
-load from ``install`` to the first collision), ``place`` copies the pack's binary for the device
-into Warp's cache, and Warp loads it as if it had built it.
+metadata, under ``warp-<version>/`` of the Warp that built them. Before Warp would compile one of
+the plugin's modules (first_use.py's watch sees each load from ``install`` to the first
+collision), ``place`` copies the pack's binary for the device into Warp's cache, and Warp loads it
+as if it had built it.
 
 A binary is found only under the name Warp itself derives from the module's code, options and
 target, so a changed kernel, another Warp version or other options miss the pack and compile as
@@ -32,9 +33,11 @@ import warp as wp
 PACKAGE_PACK = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "prebuilt")
 ENV = "MJX_SUPPORTFIELD_PREBUILT"
 
+logger = logging.getLogger("mjx_supportfield")
 _lock = threading.Lock()
 _said = set()  # (Warp version, target) pairs already reported as missing
-_CUBIN = re.compile(r"\.sm(\d+)(\d)\.cubin$")  # major, minor of a CUDA binary's architecture
+_ARCH = r"sm(\d+)(\d)"  # a CUDA target's major and minor version
+_CUBIN = re.compile(rf"\.{_ARCH}\.cubin$")
 
 
 def is_plugin_module(module) -> bool:
@@ -69,7 +72,7 @@ def place(module, device, block_dim=None) -> bool:
   except Exception as error:  # a pack must never cost more than the compile it saves
     if "failed" not in _said:
       _said.add("failed")
-      logging.getLogger("mjx_supportfield").warning(
+      logger.warning(
         "prebuilt kernels: could not place module %s (%s: %s); compiling it and any others as usual", module.name,
         type(error).__name__, error)
     return False
@@ -161,10 +164,10 @@ def _say_once_if_no_target(dirs: list, binary: str, device) -> None:
       return
     where = (f"the packs hold {', '.join(sorted(held))}" if held else
              f"no pack for Warp {wp.__version__} in {', '.join(pack_roots())}")
-    logging.getLogger("mjx_supportfield").info("no prebuilt kernels for %s (%s) with Warp %s: the plugin's modules compile as usual (%s)",
+    logger.info("no prebuilt kernels for %s (%s) with Warp %s: the plugin's modules compile as usual (%s)",
                 device.alias, target, wp.__version__, where)
 
 
 def _same_major_below(held: str, wanted: str) -> bool:
-  a, b = re.fullmatch(r"sm(\d+)(\d)", held), re.fullmatch(r"sm(\d+)(\d)", wanted)
+  a, b = re.fullmatch(_ARCH, held), re.fullmatch(_ARCH, wanted)
   return bool(a and b and a.group(1) == b.group(1) and int(a.group(2)) <= int(b.group(2)))

@@ -9,6 +9,7 @@ from mujoco_warp._src.types import OverflowType
 
 import mjx_supportfield as sf
 from mjx_supportfield.stages import routing as nph
+from conftest import bitwise_repeatable
 from conftest import contacts
 from conftest import load
 from conftest import random_quat
@@ -349,3 +350,54 @@ def test_occupancy_is_asked_once_per_kernel_and_device(monkeypatch):
   assert broadphase._filling_threads(kernel, device) == 128 * 66
   assert broadphase._filling_threads(kernel, device) == 128 * 66
   assert calls == [(kernel, "cpu")]
+
+
+@pytest.mark.parametrize("broadphase", ["sap", "nxn"])
+def test_pair_order_changes_only_the_rows_order(monkeypatch, broadphase):
+  """Pair by pair across the worlds (a GPU's default order) or world by world (the CPU's), the
+  broad phase lists the same pairs and every world gets bitwise the same contacts, step after
+  step (warm starts, the deep-pair check and the multi-contact pass included); only the order of
+  the narrow phase's queues differs."""
+  from mjx_supportfield.stages import broadphase as stage
+
+  runs = {}
+  for pair_major in (False, True):
+    monkeypatch.setattr(stage, "PAIR_MAJOR", pair_major)
+    rng = np.random.default_rng(11)
+    sim = load("convex_pile", nworld=3)
+    collider = sf.install(sim.mjm, sim.m, sf.Options(broadphase=broadphase))
+    assert collider.broad.pair_major is pair_major
+    set_qpos(sim, np.stack([perturbed_qpos(sim.mjm, rng, 0.01, 0.2) for _ in range(3)]))
+    steps = []
+    for _ in range(4):
+      with bitwise_repeatable(sim.m):  # on a GPU the solver sums in atomic order
+        mjw.step(sim.m, sim.d)
+      st = collider.state(sim.m, sim.d)
+      count, queued = st.narrow.queue_count.numpy(), st.narrow.queue_pair.numpy()
+      npair = int(st.broad.npair.numpy()[0])
+      pair, worldid = st.broad.pair.numpy()[:npair], st.broad.pair_worldid.numpy()[:npair]
+      # each queue as (world, g1, g2) in its order
+      queues = [[(int(worldid[c]), *map(int, pair[c])) for c in queued[q, : count[q]]] for q in range(len(count))]
+      steps.append((queues, [sorted_rows(world_contact_fields(sim.d, w)) for w in range(3)]))
+    runs[pair_major] = steps
+    sf.uninstall(sim.m)
+  reordered = False
+  for (queues0, rows0), (queues1, rows1) in zip(runs[False], runs[True]):
+    assert [sorted(q) for q in queues0] == [sorted(q) for q in queues1]
+    reordered |= queues0 != queues1
+    for w in range(3):
+      assert rows0[w].keys() == rows1[w].keys()
+      for k in rows0[w]:
+        np.testing.assert_array_equal(rows0[w][k], rows1[w][k], err_msg=f"world {w}, contact field {k}")
+  assert reordered  # the switch took
+
+
+def test_pair_order_by_default():
+  """Pair by pair only on a GPU, only for nxn, only for lists of at most PAIR_MAJOR_MAX_PAIRS."""
+  from mjx_supportfield.stages.broadphase import PAIR_MAJOR_MAX_PAIRS
+  from mjx_supportfield.stages.broadphase import pair_major_by_default
+
+  assert pair_major_by_default(True, True, 37) and pair_major_by_default(True, True, PAIR_MAJOR_MAX_PAIRS)
+  assert not pair_major_by_default(False, True, 37)  # the CPU keeps world by world
+  assert not pair_major_by_default(True, False, 37)  # so does the sweep
+  assert not pair_major_by_default(True, True, PAIR_MAJOR_MAX_PAIRS + 1)

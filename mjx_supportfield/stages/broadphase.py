@@ -43,6 +43,12 @@ from mjx_supportfield.types import UNIQUE_MODULE_OPTIONS
 
 wp.set_module_options(MODULE_OPTIONS)
 
+# the pair list's order (_world_and_item): None for pair_major_by_default's choice, True or False
+# everywhere (benchmarks/pair_order.py times the two on a GPU; tests run pair by pair on the CPU)
+PAIR_MAJOR = None
+# nxn lists of at most this many pairs go pair by pair on a GPU (pair_major_by_default)
+PAIR_MAJOR_MAX_PAIRS = 2048
+
 
 @wp.struct
 class PairOutputs:
@@ -121,6 +127,18 @@ def _emit_stock(pair: wp.vec2i, pairid: wp.vec2i, worldid: int, naconmax: int, o
     out.stock_pair[cid] = pair
     out.stock_pairid[cid] = pairid
     out.stock_worldid[cid] = worldid
+
+
+@wp.func
+def _world_and_item(t0: int, t1: int, pair_major: bool):
+  """The (world, item) of a thread of a (world, item) launch, or of an (item, world) launch
+  where ``pair_major``: there consecutive threads take one item (a geom pair of the list, or a
+  world's k-th slot) in consecutive worlds, so the pairs reach the narrow phase's queues in
+  that order and each warp of its kernels runs one pair of geoms in 32 worlds, on one branch
+  of its code, where a warp of one world's pairs runs the branch of each type of pair in turn."""
+  if pair_major:
+    return t1, t0
+  return t0, t1
 
 
 @wp.func
@@ -389,11 +407,13 @@ def listed_pairs_kernel(static_key: tuple, direct: bool):
     listed_pairid: wp.array(dtype=wp.vec2i),
     max_pairs: int,
     warn: bool,
+    pair_major: bool,
     # Out:
     out: PairOutputs,
     queues: PairQueues,
   ):
-    worldid, k = wp.tid()
+    t0, t1 = wp.tid()
+    worldid, k = _world_and_item(t0, t1, pair_major)
     geoms = listed_pair[k]
     g1 = geoms[0]
     g2 = geoms[1]
@@ -448,13 +468,15 @@ def compact_pairs(
   max_pairs: int,
   world_count: wp.array(dtype=int),
   world_start: wp.array(dtype=int),
+  pair_major: bool,
   # Out:
   out: PairOutputs,
   queues: PairQueues,
 ):
   """Copies each world's slots to its range of the pair list (world_start: exclusive scan) and
-  queues each pair for its narrow-phase kernel."""
-  worldid, k = wp.tid()
+  queues each pair for its narrow-phase kernel (in the order of _world_and_item)."""
+  t0, t1 = wp.tid()
+  worldid, k = _world_and_item(t0, t1, pair_major)
   n = world_count[worldid]
   if k == 0 and worldid == world_count.shape[0] - 1:
     out.npair[0] = world_start[worldid] + n
@@ -487,7 +509,7 @@ class Buffers:
   slot_pairid: wp.array
   world_count: wp.array
   world_start: wp.array
-  pair: wp.array  # the compacted pair list, worlds back to back
+  pair: wp.array  # the pair list: worlds back to back, or with nxn on a GPU, pair by pair (_world_and_item)
   pairid: wp.array
   pair_worldid: wp.array
   stock_ctx: CollisionContext  # the pairs left to MuJoCo Warp's own narrow phase
@@ -519,6 +541,17 @@ def _filling_threads(kernel, device) -> int:
   return _FILLING_THREADS[key]
 
 
+def pair_major_by_default(cuda: bool, nxn: bool, npair: int) -> bool:
+  """Whether the broad phase lists its pairs pair by pair across the worlds (_world_and_item):
+  on a GPU, for an nxn list of at most PAIR_MAJOR_MAX_PAIRS pairs. There a warp of the narrow
+  phase's kernels runs one pair of geoms in 32 worlds; the price is nxn's reads of the boxes,
+  each lane's from another world's row of ``aabb_lo`` (uncoalesced), paid by every listed pair in
+  every world, which a robot's thousands of listed pairs, few of them touching, do not win back.
+  The sweep's per-world slots hold other pairs in each world at the same place, so it stays world
+  by world; so does the CPU, whose threads run in that order (the contacts keep it)."""
+  return cuda and nxn and npair <= PAIR_MAJOR_MAX_PAIRS
+
+
 class BroadPhase:
   """The broad phase: the model's pair facts install found, per-Data buffers, and the step's
   launches (the stage contract: docs/architecture.md)."""
@@ -534,6 +567,7 @@ class BroadPhase:
     self.geom_stock = geom_stock  # per geom: 1 when MuJoCo Warp's own narrow phase collides its pairs (-1: never)
     self.type_stock = type_stock  # per geom-type pair: 1 when its class is routed there (Options.stock_pair_classes)
     self.sap_axis = sap_axis
+    self.pair_major = PAIR_MAJOR  # the pair list's order (pair_major_by_default where None)
 
   def make_buffers(self, d, st) -> Buffers:
     """The broad phase's buffers for Data ``d``."""
@@ -605,12 +639,19 @@ class BroadPhase:
     common_data = [d.geom_xpos, d.geom_xmat, d.body_awake, d.naconmax, awake_prev_in, self.geom_stock, self.type_stock,
                    b.aabb_lo, b.aabb_hi]
 
+    pair_major = self.pair_major
+    if pair_major is None:
+      pair_major = pair_major_by_default(d.geom_xpos.device.is_cuda, self.nxn, self.npair_filtered)
+
+    def grid(nitem: int) -> tuple:
+      return (nitem, d.nworld) if pair_major else (d.nworld, nitem)
+
     def listed(direct: bool, pairs: wp.array, pairids: wp.array, npair: int):
       kernel = listed_pairs_kernel(key, direct)
       wp.launch(
         kernel,
-        dim=(d.nworld, npair),
-        inputs=common_model + common_data + [pairs, pairids, self.max_pairs, warn],
+        dim=grid(npair),
+        inputs=common_model + common_data + [pairs, pairids, self.max_pairs, warn, pair_major],
         outputs=[b.outputs, queues],
         **_grid_of(kernel, m, d),
       )
@@ -633,7 +674,7 @@ class BroadPhase:
     wp.utils.array_scan(b.world_count, b.world_start, inclusive=False)
     wp.launch(
       compact_pairs,
-      dim=(d.nworld, self.max_pairs),
-      inputs=[m.geom_type, self.max_pairs, b.world_count, b.world_start],
+      dim=grid(self.max_pairs),
+      inputs=[m.geom_type, self.max_pairs, b.world_count, b.world_start, pair_major],
       outputs=[b.outputs, queues],
     )

@@ -106,6 +106,26 @@ def test_capsule_across_a_slope_in_closed_form():
     assert np.linalg.norm(c.pos - end, axis=1).min() < 1e-4, (end, c.pos)
 
 
+def test_capsule_sunk_past_its_axis_gets_mujocos_prism_answers():
+  """tests/data/repro/hfield_sunk_capsule.xml: a G1 foot capsule sunk 15 mm (its radius is 10 mm)
+  into rough terrain, its axis below the slope it lies across. Where a triangle's plane has the
+  axis below it, the least overlap of the capsule and the triangle's prism may lie across one of
+  the triangle's edges, not along its normal: MuJoCo C's contact there is 11.4 mm deep along the
+  cross of the axis and the edge. Each of MuJoCo C's contacts but those through a wall between
+  two prisms (a horizontal normal inside the grid) has the plugin's contact at its point, along
+  its normal and as deep."""
+  with open(os.path.join(ROOT, "tests", "data", "repro", "hfield_sunk_capsule.xml")) as f:
+    sim, c = _plugin_contacts(f.read())
+  ref = sim.mjd.contact[: sim.mjd.ncon]
+  surface = [k for k in range(len(ref)) if abs(ref.frame[k][2]) > 1e-3]
+  assert len(surface) == 2 and min(ref.dist) < -0.011
+  for k in surface:
+    near = int(np.argmin(np.linalg.norm(c.pos - ref.pos[k], axis=1)))
+    assert np.linalg.norm(c.pos[near] - ref.pos[k]) < 1e-4, (ref.pos[k], c.pos)
+    assert angle_deg(c.normal[near], ref.frame[k][:3]) < 0.1
+    assert abs(c.dist[near] - ref.dist[k]) < 1e-5
+
+
 def test_ridge_poking_into_a_sphere():
   """A sphere over a roof ridge touches only the ridge edge: no triangle's plane sees it."""
   x = np.linspace(-1.0, 1.0, 5)

@@ -15,7 +15,9 @@ capsule's own ends over the triangle:
 A capsule's point for a triangle: of the part of its axis over the triangle (seen along z), where
 that part reaches the triangle's plane its end nearest the plane (the middle where the axis lies
 parallel to it), else its point nearest the triangle; where no part lies over it, the axis point
-nearest the triangle (a ridge beside the capsule, a steep triangle beside an end).
+nearest the triangle (a ridge beside the capsule, a steep triangle beside an end). Where the part
+reaches the plane, the contact is the least overlap of the capsule and the triangle's prism, along
+the normal or across one of the triangle's edges (_sunk_part).
 
 One kernel, ``hfield_closed_form``, one thread a pair of hfield_jobs' list (which marks the pairs
 by ``closed_form``), in a module of its own: the stage's other kernels (MPR, GJK/EPA) take
@@ -241,6 +243,55 @@ def _answer(hfield: Heightfield, dx: float, dy: float, r: int, c: int, t: int, v
 
 
 @wp.func
+def _overlap_along(u: wp.vec3, s0: wp.vec3, s1: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, rad: float) -> float:
+  """How far the capsule part s0 s1 (radius rad) must move along unit u to clear triangle v0 v1 v2
+  (its prism's top, u pointing out of the terrain)."""
+  top = wp.max(wp.dot(u, v0), wp.max(wp.dot(u, v1), wp.dot(u, v2)))
+  return top - wp.min(wp.dot(u, s0), wp.dot(u, s1)) + rad
+
+
+@wp.func
+def _sunk_part(s0: wp.vec3, s1: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, n: wp.vec3, rad: float,
+               band: float) -> tuple[float, wp.vec3, wp.vec3]:
+  """The contact of a capsule whose axis part over triangle v0 v1 v2 (normal n) reaches below its
+  plane: the least of the overlaps along n and along each cross of the axis with an edge of the
+  triangle (a segment and a triangle's prism separate along one of those), as MuJoCo's
+  penetration of the prism answers; (depth, position, normal), the depth grown by band. Along n
+  alone, a foot sunk into a slope beside a ridge would be pushed out along the slope's normal
+  where the ridge's edge holds it less."""
+  best_u = n
+  best = _overlap_along(n, s0, s1, v0, v1, v2, rad)
+  best_edge = int(-1)
+  axis = s1 - s0
+  for k in range(3):
+    edge = _corner_of((k + 1) % 3, v0, v1, v2) - _corner_of(k, v0, v1, v2)
+    u = wp.cross(axis, edge)
+    length = wp.length(u)
+    if length <= 1.0e-6 * wp.length(axis) * wp.length(edge):
+      continue  # the axis along the edge
+    u = u / length
+    if wp.dot(u, n) < 0.0:
+      u = -u
+    overlap = _overlap_along(u, s0, s1, v0, v1, v2, rad)
+    if overlap < best:
+      best = overlap
+      best_u = u
+      best_edge = k
+  # along n the axis point deepest below the plane (the middle where the axis lies parallel to
+  # it); across an edge the axis point nearest to that edge
+  h0 = wp.dot(best_u, s0)
+  h1 = wp.dot(best_u, s1)
+  x = wp.where(h0 < h1, s0, s1)
+  if wp.abs(h0 - h1) <= 1.0e-3 * rad:
+    x = 0.5 * (s0 + s1)
+  if best_edge >= 0:
+    x, _ = closest_segment_to_segment_points(s0, s1, _corner_of(best_edge, v0, v1, v2),
+                                             _corner_of((best_edge + 1) % 3, v0, v1, v2))
+  depth = band + best
+  return depth, x - rad * best_u + 0.5 * depth * best_u, best_u
+
+
+@wp.func
 def closed_form_pass(hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: float, nball: int) -> Candidates:
   """A sphere's or a capsule's contact candidates against the terrain under it: each triangle's
   balls (_ball_for, ``nball`` of them) answered at their nearest points (module notes)."""
@@ -262,8 +313,15 @@ def closed_form_pass(hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: fl
       npair, x0, s0, s1 = _ball_for(b, item % nball, p00, v1, v2, n)
       if npair == 0:
         continue
-      x, q, at = _nearest_pair(x0, s0, s1, npair, p00, v1, v2)
-      depth, pos, normal = _answer(hfield, dx, dy, r, c, t, p00, n, x, q, at, b.size[0], tp.band)
+      depth = float(0.0)
+      pos = x0
+      normal = n
+      if b.gtype == GeomType.CAPSULE and item % nball == 0 and npair == 1:
+        # the axis part over the triangle reaches its plane (_ball_for)
+        depth, pos, normal = _sunk_part(s0, s1, p00, v1, v2, n, b.size[0], tp.band)
+      else:
+        x, q, at = _nearest_pair(x0, s0, s1, npair, p00, v1, v2)
+        depth, pos, normal = _answer(hfield, dx, dy, r, c, t, p00, n, x, q, at, b.size[0], tp.band)
       if depth > 0.0:
         cands = add_candidate(cands, pos, normal, depth, spacing)
   return cands

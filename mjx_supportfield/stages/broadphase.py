@@ -15,7 +15,9 @@ Two ways, chosen at install (``Options.broadphase``):
   and are then compacted into one list, worlds back to back.
 
 Both apply the sleep rules and MuJoCo Warp's own bounding filters (plane, sphere, AABB, OBB
-per ``m.opt.broadphase_filter``).
+per ``m.opt.broadphase_filter``). On a GPU, nxn's threads take a model's few pairs pair by pair
+across the worlds (``pair_major_by_default``), so that the narrow phase's queues hold them in
+that order.
 
 This module owns the broad phase's kernels, its per-Data buffers (``Buffers``) and its stage
 class, ``BroadPhase``, whose ``launch`` runs the geoms' boxes (aabb.py's kernel), then nxn or

@@ -106,19 +106,21 @@ def test_capsule_across_a_slope_in_closed_form():
     assert np.linalg.norm(c.pos - end, axis=1).min() < 1e-4, (end, c.pos)
 
 
-def test_capsule_sunk_past_its_axis_gets_mujocos_prism_answers():
-  """tests/data/repro/hfield_sunk_capsule.xml: a G1 foot capsule sunk 15 mm (its radius is 10 mm)
-  into rough terrain, its axis below the slope it lies across. Where a triangle's plane has the
-  axis below it, the least overlap of the capsule and the triangle's prism may lie across one of
-  the triangle's edges, not along its normal: MuJoCo C's contact there is 11.4 mm deep along the
-  cross of the axis and the edge. Each of MuJoCo C's contacts but those through a wall between
-  two prisms (a horizontal normal inside the grid) has the plugin's contact at its point, along
-  its normal and as deep."""
-  with open(os.path.join(ROOT, "tests", "data", "repro", "hfield_sunk_capsule.xml")) as f:
+@pytest.mark.parametrize("case, nsurface, deepest", [("hfield_sunk_capsule", 2, 0.011),
+                                                     ("hfield_capsule_off_footprint", 4, 0.003)])
+def test_foot_capsule_gets_mujocos_prism_answers(case, nsurface, deepest):
+  """G1 foot capsules (1 cm radius) on patches of humanoid_rough's terrain (tests/data/repro):
+  sunk 15 mm, its axis below the slope it lies across, where the least overlap with a triangle's
+  prism lies across one of the triangle's edges, not along its normal; and lying 3 mm deep across
+  a fold, where the capsule's point nearest to a sloped triangle lies past the triangle's edge
+  seen along z. Each of MuJoCo C's contacts but those through a wall between two prisms (a
+  horizontal normal inside the grid) has the plugin's contact at its point, along its normal and
+  as deep."""
+  with open(os.path.join(ROOT, "tests", "data", "repro", f"{case}.xml")) as f:
     sim, c = _plugin_contacts(f.read())
   ref = sim.mjd.contact[: sim.mjd.ncon]
   surface = [k for k in range(len(ref)) if abs(ref.frame[k][2]) > 1e-3]
-  assert len(surface) == 2 and min(ref.dist) < -0.011
+  assert len(surface) == nsurface and min(ref.dist) < -deepest
   for k in surface:
     near = int(np.argmin(np.linalg.norm(c.pos - ref.pos[k], axis=1)))
     assert np.linalg.norm(c.pos[near] - ref.pos[k]) < 1e-4, (ref.pos[k], c.pos)

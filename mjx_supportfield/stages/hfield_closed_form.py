@@ -12,12 +12,14 @@ capsule's own ends over the triangle:
   deep as the ball reaches below the plane there: MuJoCo's prism beside the one under a ball
   answers there too, but tilted toward the edge, which pushes a ball lying on a plane sideways.
 
-A capsule's point for a triangle: of the part of its axis over the triangle (seen along z), where
-that part reaches the triangle's plane its end nearest the plane (the middle where the axis lies
-parallel to it), else its point nearest the triangle; where no part lies over it, the axis point
-nearest the triangle (a ridge beside the capsule, a steep triangle beside an end). Where the part
-reaches the plane, the contact is the least overlap of the capsule and the triangle's prism, along
-the normal or across one of the triangle's edges (_sunk_part).
+A capsule's point for a triangle: where the part of its axis over the triangle (seen along z)
+reaches the triangle's plane, the contact is the least overlap of the capsule and the triangle's
+prism, along the normal or across one of the triangle's edges (_sunk_part), at that part's end
+nearest the plane (the middle where the axis lies parallel to it) or at the axis point nearest
+the edge; else the point of the whole axis nearest the triangle, tried from the part's point
+nearest the plane first (so that a capsule lying parallel to a plane keeps a point over each
+triangle): on a slope the axis point nearest a triangle can lie past its edge seen along z, and a
+ridge or a steep triangle beside the capsule has no part under it at all.
 
 One kernel, ``hfield_closed_form``, one thread a pair of hfield_jobs' list (which marks the pairs
 by ``closed_form``), in a module of its own: the stage's other kernels (MPR, GJK/EPA) take
@@ -205,7 +207,9 @@ def _ball_for(b: Shape, k: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, n: wp.vec
   if k == 0:
     # reaching the plane over the triangle: the plane's answer at the deepest point; above it, the
     # part's point nearest to the triangle
-    return wp.where(wp.min(h0, h1) <= 0.0, 1, NPAIR), p0 + deepest * (p1 - p0), s0, s1
+    if wp.min(h0, h1) <= 0.0:
+      return 1, p0 + deepest * (p1 - p0), s0, s1
+    return NPAIR, p0 + deepest * (p1 - p0), p0, p1
   end = float(k - 1)
   held = end >= span[0] and end <= span[1] and end != deepest
   x = p0 + end * (p1 - p0)

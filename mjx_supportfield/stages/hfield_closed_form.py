@@ -188,7 +188,8 @@ def _ball_for(b: Shape, k: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, n: wp.vec
                                                                                            wp.vec3]:
   """B's k-th ball against triangle v0 v1 v2 (normal n), as (_nearest_pair's npair, x0, s0, s1),
   npair 0 where there is none: a sphere's centre (k = 0); a capsule's point for the triangle
-  (k = 0; module notes), its end k - 1 where the part over the triangle holds it."""
+  (k = 0; module notes), its end k - 1 where the part over the triangle holds it. A capsule's
+  k = 0 with npair 1 is the part over the triangle reaching its plane, s0 s1, for _sunk_part."""
   if b.gtype == GeomType.SPHERE:
     return wp.where(k == 0, 1, 0), b.pos, b.pos, b.pos
   axis = wp.vec3(b.rot[0, 2], b.rot[1, 2], b.rot[2, 2]) * b.size[1]
@@ -205,8 +206,8 @@ def _ball_for(b: Shape, k: int, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, n: wp.vec
   if wp.abs(h0 - h1) <= 1.0e-3 * b.size[0]:  # the axis parallel to the plane: the part's middle
     deepest = 0.5 * (span[0] + span[1])
   if k == 0:
-    # reaching the plane over the triangle: the plane's answer at the deepest point; above it, the
-    # part's point nearest to the triangle
+    # reaching the plane over the triangle: the part (_sunk_part); above it, the whole axis against
+    # the triangle, from the part's point nearest the plane
     if wp.min(h0, h1) <= 0.0:
       return 1, p0 + deepest * (p1 - p0), s0, s1
     return NPAIR, p0 + deepest * (p1 - p0), p0, p1

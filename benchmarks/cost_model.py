@@ -19,6 +19,7 @@ check a routing rule on scenes that mix classes. Writes the rows (bench.Row fiel
 """
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -40,24 +41,34 @@ from mjx_supportfield.tools import bench  # noqa: E402
 SCENES = {c: os.path.join(HERE, "scenes", f"cost_{c}.xml") for c in PAIR_CLASSES}
 
 
-def time_variants(path: str, routings: dict, nworld: int, launches: int, settle: int,
-                  keyframe: Optional[int] = None, pair_class: Optional[str] = None) -> list[dict]:
-  """Rows of stock and of the plugin under each routing (variant name -> the classes it routes)
-  on one scene at ``nworld``, settled from qpos0 or from ``keyframe`` where the model has one."""
+def time_impls(path: str, variants: dict, nworld: int, launches: int, settle: int, keyframe: Optional[int] = None,
+               **extra) -> list[dict]:
+  """Rows (bench.Row fields, ``variant`` and ``extra``) of each variant (name -> (implementation,
+  Options or None, a context manager the variant is installed and timed in, or None)) on one
+  scene at ``nworld``, all from one state: settled from qpos0, or from ``keyframe`` where the
+  model has one, with the same room."""
   mjm = mujoco.MjModel.from_xml_path(path)
   mjd = bench.settled_state(mjm, settle, keyframe if keyframe is not None and keyframe < mjm.nkey else None)
   ncon = int(1.5 * mjd.ncon) + 16
-  variants = {"stock": ("stock", None)}
-  variants.update({name: ("plugin", Options(stock_pair_classes=classes)) for name, classes in routings.items()})
   rows = []
-  for variant, (impl, options) in variants.items():
-    collision, step, overflow = bench.time_impl(mjm, mjd, bench.scene_name(path), nworld, impl, ncon, launches,
-                                                options)
+  for variant, (impl, options, context) in variants.items():
+    with context or contextlib.nullcontext():
+      collision, step, overflow = bench.time_impl(mjm, mjd, bench.scene_name(path), nworld, impl, ncon, launches,
+                                                  options)
     if overflow:
       sys.stderr.write(f"warning: {path}, nworld {nworld}, {variant}: overflow bits {overflow}\n")
     for row in (collision, step):
-      rows.append(dict(dataclasses.asdict(row), variant=variant, pair_class=pair_class))
+      rows.append(dict(dataclasses.asdict(row), variant=variant, **extra))
   return rows
+
+
+def time_variants(path: str, routings: dict, nworld: int, launches: int, settle: int,
+                  keyframe: Optional[int] = None, pair_class: Optional[str] = None) -> list[dict]:
+  """Rows of stock and of the plugin under each routing (variant name -> the classes it routes)
+  on one scene at ``nworld`` (time_impls)."""
+  variants = {"stock": ("stock", None, None)}
+  variants.update({name: ("plugin", Options(stock_pair_classes=classes), None) for name, classes in routings.items()})
+  return time_impls(path, variants, nworld, launches, settle, keyframe, pair_class=pair_class)
 
 
 def time_class(pair_class: str, nworld: int, launches: int, settle: int) -> list[dict]:

@@ -15,43 +15,44 @@ is installed). The order does not change which contacts a world gets, only the o
 """
 
 import argparse
-import dataclasses
+import contextlib
 import json
 import os
 import sys
 
-import mujoco
-
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
+
+import cost_model  # noqa: E402
 
 from mjx_supportfield.options import Options  # noqa: E402
 from mjx_supportfield.stages import broadphase  # noqa: E402
 from mjx_supportfield.tools import bench  # noqa: E402
 
-def variants(force_pair_major: bool) -> tuple:
-  """(name, implementation, broadphase.PAIR_MAJOR while installing) of each timed variant."""
-  return (("stock", "stock", None), ("plugin", "plugin", True if force_pair_major else None),
-          ("world_major", "plugin", False))
+
+@contextlib.contextmanager
+def pair_major(value):
+  """broadphase.PAIR_MAJOR set to ``value`` within the block (install reads it)."""
+  broadphase.PAIR_MAJOR = value
+  try:
+    yield
+  finally:
+    broadphase.PAIR_MAJOR = None
+
+
+def variants(force_pair_major: bool) -> dict:
+  """cost_model.time_impls' variants: stock, the plugin (pair by pair whatever the list's size
+  where ``force_pair_major``) and the plugin world by world."""
+  return {"stock": ("stock", None, None),
+          "plugin": ("plugin", Options(), pair_major(True) if force_pair_major else None),
+          "world_major": ("plugin", Options(), pair_major(False))}
 
 
 def time_orders(path: str, nworld: int, launches: int, settle: int, force_pair_major: bool = False) -> list[dict]:
-  """Rows (bench.Row fields plus ``variant``) of stock, the plugin and the plugin world by world."""
-  mjm = mujoco.MjModel.from_xml_path(path)
-  mjd = bench.settled_state(mjm, settle, 0 if mjm.nkey else None)
-  ncon = int(1.5 * mjd.ncon) + 16
-  rows = []
-  for variant, impl, pair_major in variants(force_pair_major):
-    broadphase.PAIR_MAJOR = pair_major  # read by install (time_impl installs the plugin)
-    try:
-      collision, step, overflow = bench.time_impl(mjm, mjd, bench.scene_name(path), nworld, impl, ncon, launches,
-                                                  Options())
-    finally:
-      broadphase.PAIR_MAJOR = None
-    if overflow:
-      sys.stderr.write(f"warning: {path}, nworld {nworld}, {variant}: overflow bits {overflow}\n")
-    rows += [dict(dataclasses.asdict(row), variant=variant) for row in (collision, step)]
-  return rows
+  """Rows (bench.Row fields plus ``variant``) of stock, the plugin and the plugin world by world,
+  from the scene's keyframe where it has one."""
+  return cost_model.time_impls(path, variants(force_pair_major), nworld, launches, settle, keyframe=0)
 
 
 def main():

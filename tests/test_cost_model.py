@@ -75,3 +75,24 @@ def test_a_scene_is_timed_under_each_routing(monkeypatch):
   rows = cost_model.time_scene(cost_model.SCENES["mesh"], [("mesh",), ("analytic", "mesh")], 4, 1, 0)
   assert calls == [("stock", None), ("plugin", ()), ("plugin", ("mesh",)), ("plugin", ("analytic", "mesh"))]
   assert {r["variant"] for r in rows} == {"stock", "plugin", "route:mesh", "route:analytic+mesh"}
+
+
+def test_pair_order_times_each_order_and_restores_the_default(monkeypatch):
+  """benchmarks/pair_order.py: stock, the plugin as by default and the plugin world by world (or
+  forced pair by pair), broadphase.PAIR_MAJOR as each asks while it is installed, None after."""
+  import pair_order
+  from mjx_supportfield.stages import broadphase
+
+  for force, plugin_order in ((False, None), (True, True)):
+    seen = []
+
+    def time_impl(mjm, mjd, scene, nworld, impl, ncon, launches, options):
+      seen.append((impl, broadphase.PAIR_MAJOR))
+      return bench.Row(scene, nworld, impl, "collision", 1.0, 1.0), bench.Row(scene, nworld, impl, "step", 2.0, 1.0), 0
+
+    monkeypatch.setattr(bench, "time_impl", time_impl)
+    monkeypatch.setattr(bench, "settled_state", lambda mjm, settle, keyframe=None: mujoco.MjData(mjm))
+    rows = pair_order.time_orders(cost_model.SCENES["mesh"], 4, 1, 0, force)
+    assert seen == [("stock", None), ("plugin", plugin_order), ("plugin", False)]
+    assert [r["variant"] for r in rows] == ["stock", "stock", "plugin", "plugin", "world_major", "world_major"]
+    assert broadphase.PAIR_MAJOR is None

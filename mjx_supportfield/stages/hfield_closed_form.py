@@ -282,16 +282,17 @@ def _sunk_part(s0: wp.vec3, s1: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, 
       best = overlap
       best_u = u
       best_edge = k
-  # along n the axis point deepest below the plane (the middle where the axis lies parallel to
-  # it); across an edge the axis point nearest to that edge
-  h0 = wp.dot(best_u, s0)
-  h1 = wp.dot(best_u, s1)
-  x = wp.where(h0 < h1, s0, s1)
-  if wp.abs(h0 - h1) <= 1.0e-3 * rad:
-    x = 0.5 * (s0 + s1)
+  # across an edge the axis point nearest to that edge; along n the axis point deepest below the
+  # plane (the middle where the axis lies parallel to it)
+  x = 0.5 * (s0 + s1)
   if best_edge >= 0:
     x, _ = closest_segment_to_segment_points(s0, s1, _corner_of(best_edge, v0, v1, v2),
                                              _corner_of((best_edge + 1) % 3, v0, v1, v2))
+  else:
+    h0 = wp.dot(best_u, s0)
+    h1 = wp.dot(best_u, s1)
+    if wp.abs(h0 - h1) > 1.0e-3 * rad:
+      x = wp.where(h0 < h1, s0, s1)
   depth = band + best
   return depth, x - rad * best_u + 0.5 * depth * best_u, best_u
 

@@ -1,6 +1,7 @@
 """Registers, stack per thread and build time of the plugin's kernels for a GPU, without a GPU.
 
   python benchmarks/kernel_resources.py [--arch 90] [--ptxas PATH] [--out FILE] [--max-registers N]
+                                        [--only WORD,WORD]
 
 Warp writes each kernel module's PTX for the given architecture (``wp.compile_aot_module``);
 ``ptxas -v`` then reports what the GPU would run. A kernel at the 255-register cap spills to
@@ -65,7 +66,10 @@ def kernels() -> dict:
     "manifold (face clipping)": multicontact_pass.pass_kernels(_MODE).manifold,
     "heightfield jobs": heightfield.stage_kernels(_MODE).jobs,
     "heightfield MPR": heightfield.stage_kernels(_MODE).mpr,
-    "heightfield contacts": heightfield.stage_kernels(_MODE).contacts,
+    "heightfield GJK/EPA": heightfield.stage_kernels(_MODE).ccd,
+    "heightfield contacts": heightfield.contacts_kernel(_MODE, False),
+    "heightfield contacts (GJK/EPA)": heightfield.contacts_kernel(_MODE, True),
+    "heightfield closed form": heightfield.hfield_closed_form,
     "non-convex (SDF)": nonconvex.nonconvex_narrowphase(_MODE),
   }
 
@@ -101,6 +105,7 @@ def main():
   p.add_argument("--ptxas", default="ptxas", help="ptxas of CUDA 13.4 or later")
   p.add_argument("--out", help="also write the table to this file")
   p.add_argument("--max-registers", type=int, help="rebuild each kernel with this register cap (cuda_max_registers)")
+  p.add_argument("--only", help="report only the kernels whose label contains one of these comma-separated words")
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
   wp.init()
@@ -110,6 +115,8 @@ def main():
   print("\n".join(lines), flush=True)
   with tempfile.TemporaryDirectory() as workdir:
     for label, kernel in kernels().items():
+      if args.only and not any(word in label for word in args.only.split(",")):
+        continue
       if args.max_registers:
         kernel = wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=args.max_registers)
       regs, stack, seconds = resources(kernel, args.arch, args.ptxas, workdir)

@@ -12,7 +12,10 @@ reported as the rest (solver, kinematics, ...), with the mean solver iterations.
 A variant is ``default`` or Options fields as ``key=value;key=value`` (Python literals), e.g.
 ``multi_contact=False;mpr_refine=0``. One more key, ``max_registers=N``, rebuilds the MPR, GJK,
 tilt, patch and heightfield MPR kernels with at most N registers a thread instead of
-launch.grid.HEAVY_REGISTERS (Warp's ``cuda_max_registers``; 255 lifts the cap) for that variant.
+launch.grid.HEAVY_REGISTERS (Warp's ``cuda_max_registers``; 255 lifts the cap) for that variant;
+``hfield_registers=N`` caps only the heightfield's contact and closed-form kernels; ``ccd_threads=N``
+gives the heightfield's GJK/EPA prisms N threads (rows of EPA memory) instead of
+hfield_window.CCD_THREADS.
 """
 
 import argparse
@@ -78,6 +81,40 @@ def _register_cap(cap):
     heightfield.stage_kernels = saved_stage
 
 
+@contextlib.contextmanager
+def _hfield_register_cap(cap):
+  """Within the block, the heightfield's contact and closed-form kernels are rebuilt with at most
+  ``cap`` registers a thread (None: unchanged)."""
+  if cap is None:
+    yield
+    return
+  saved_contacts = heightfield.contacts_kernel
+  saved_closed_form = heightfield.hfield_closed_form
+
+  def capped(kernel):
+    return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
+
+  heightfield.contacts_kernel = functools.lru_cache(maxsize=None)(lambda mode, ccd: capped(saved_contacts(mode, ccd)))
+  heightfield.hfield_closed_form = capped(saved_closed_form)
+  try:
+    yield
+  finally:
+    heightfield.contacts_kernel = saved_contacts
+    heightfield.hfield_closed_form = saved_closed_form
+
+
+@contextlib.contextmanager
+def _ccd_threads(n):
+  """Within the block, the heightfield's GJK/EPA prisms get ``n`` threads, each with a row of EPA
+  memory (None: hfield_window.CCD_THREADS)."""
+  saved = heightfield.CCD_THREADS
+  heightfield.CCD_THREADS = saved if n is None else n
+  try:
+    yield
+  finally:
+    heightfield.CCD_THREADS = saved
+
+
 def main():
   p = argparse.ArgumentParser()
   p.add_argument("model")
@@ -97,7 +134,11 @@ def main():
   for impl in ([] if args.no_stock else ["stock"]) + args.variants.split(","):
     fields = dict(kv.split("=", 1) for kv in impl.split(";") if kv not in ("default", "stock"))
     cap = fields.pop("max_registers", None)
-    with _register_cap(None if cap is None else int(cap)):
+    hfield_cap = fields.pop("hfield_registers", None)
+    ccd_threads = fields.pop("ccd_threads", None)
+    with (_register_cap(None if cap is None else int(cap)),
+          _hfield_register_cap(None if hfield_cap is None else int(hfield_cap)),
+          _ccd_threads(None if ccd_threads is None else int(ccd_threads))):
       _profile_variant(args, mjm, mjd, ncon, impl, fields)
 
 

@@ -25,8 +25,8 @@ world's controls are the keyframe's plus uniform noise of that amplitude, and af
 the worlds whose episode ends (world w after chunks k with (k + w) % N == N - 1: a staggered
 fraction 1/N of the worlds each time) are reset as mjlab resets them: ``mjw.reset_data`` with that
 mask, then the keyframe's state shifted horizontally by up to 5 cm and each robot lifted clear
-of the ground it would sink into there (as a spawn on terrain must be), small random velocities
-and ``mjw.forward``. A world in which a robot has walked off the terrain (its root beyond every
+of the ground it would sink into there (as a spawn on terrain must be; SPAWN_POOL such spawns are
+made at the first reset and drawn at random), small random velocities and ``mjw.forward``. A world in which a robot has walked off the terrain (its root beyond every
 static heightfield and box, seen from above) ends its episode too, as an RL run's out-of-bounds
 termination ends it; its geoms are not judged in that chunk, and the count is reported. Random controls feed the robots energy, so the energy bound is reported but not
 judged while they are on.
@@ -89,6 +89,9 @@ from mjx_supportfield.driver import install  # noqa: E402
 SPEED = 0.05  # m/s (and rad/s) of the random initial velocities
 RESET_SHIFT = 0.05  # m: how far a reset world's robots are moved horizontally from the keyframe
 LIFT_CLEARANCE = 0.002  # m: a reset robot's lowest geom above the ground it was lifted out of
+# reset spawns (each a shift and its lift) prepared once and drawn at random: lifting every reset
+# world's robots with MuJoCo C on the host took most of a chunk's time at thousands of worlds
+SPAWN_POOL = 256
 
 
 def energy(d) -> np.ndarray:
@@ -211,6 +214,7 @@ class Episodes:
     self.scratch = mujoco.MjData(mjm)  # where a reset pose is checked against the ground
     self.static = set(real_scenes.static_geoms(mjm))
     self.resets = 0
+    self.spawns = None  # SPAWN_POOL lifted poses, made at the first reset
 
   def drive(self, d):
     """New controls for the next chunk."""
@@ -228,18 +232,24 @@ class Episodes:
       return
     mjw.reset_data(self.m, d, reset=wp.array(mask, dtype=bool))
     qpos, qvel, ctrl = d.qpos.numpy(), d.qvel.numpy(), d.ctrl.numpy()
+    if self.spawns is None:
+      self.spawns = [self.lifted(self.shifted()) for _ in range(min(SPAWN_POOL, self.nworld))]
     for w in np.nonzero(mask)[0]:
-      q = self.qpos0.copy()
-      for b in real_scenes.free_bodies(self.mjm):
-        adr = self.mjm.jnt_qposadr[self.mjm.body_jntadr[b]]
-        q[adr:adr + 2] += self.rng.uniform(-RESET_SHIFT, RESET_SHIFT, size=2)
-      qpos[w], ctrl[w] = self.lifted(q), self.ctrl0
+      qpos[w], ctrl[w] = self.spawns[self.rng.integers(len(self.spawns))], self.ctrl0
       qvel[w] = SPEED * self.rng.uniform(-1, 1, size=self.mjm.nv)
     d.qpos.assign(qpos)
     d.qvel.assign(qvel)
     d.ctrl.assign(ctrl)
     mjw.forward(self.m, d)
     self.resets += int(mask.sum())
+
+  def shifted(self) -> np.ndarray:
+    """The keyframe's qpos with each free body moved horizontally by up to RESET_SHIFT."""
+    q = self.qpos0.copy()
+    for b in real_scenes.free_bodies(self.mjm):
+      adr = self.mjm.jnt_qposadr[self.mjm.body_jntadr[b]]
+      q[adr:adr + 2] += self.rng.uniform(-RESET_SHIFT, RESET_SHIFT, size=2)
+    return q
 
   def lifted(self, qpos: np.ndarray) -> np.ndarray:
     """``qpos`` with each free body raised until its tree's geoms clear the static ground by

@@ -94,12 +94,14 @@ class Options:
       from the MJCF custom text ``mjx_supportfield.nonconvex`` (names separated by spaces).
     nonconvex_sdf_res: cells along the longest side of a non-convex mesh's baked SDF. Default 64,
       integer 8 to 512. Raise it for thin walls or fine features.
-    hfield_mprs_per_pair: room in the terrain MPR queue per heightfield pair, on average over
-      all worlds. Default 16, integer 1 to 4096. A heightfield pair's MPRs (the triangle prisms
-      and terrain points that pass the cheap tests: about 10 for a geom over a few cells, a few
-      hundred over a hundred cells) run side by side from this queue; those that find it full
-      run one after another in the pair's own thread: the same contacts, slower (counted in
-      the collider's stats as ``hfield_mprs_unqueued``; raise it when that count is large).
+    hfield_mprs_per_pair: room in the terrain MPR queue per heightfield pair of a geom other
+      than a sphere or a capsule (and per 8 of those: they take MPRs only where they reach past
+      the heightfield's edge), on average over all worlds. Default 64, integer 1 to 4096. A
+      heightfield pair's MPRs (the triangle prisms and terrain points that pass the cheap tests:
+      about 10 for a geom over a few cells, a few hundred over a hundred cells) run side by side
+      from this queue; those that find it full run one after another in the pair's own thread:
+      the same contacts, slower (counted in the collider's stats as ``hfield_mprs_unqueued``;
+      raise it when that count is large).
     contacts_per_world: rows of ``d.contact`` each world owns. Default 0, integer 0 to 16777216
       (2**24). 0: all worlds share ``d.naconmax`` rows, first come first served, so when they
       overflow any world can lose contacts. N > 0: world w writes rows [w*N, (w+1)*N) only, and
@@ -152,7 +154,7 @@ class Options:
   warm_start: bool = True
   nonconvex_geoms: tuple = ()
   nonconvex_sdf_res: int = 64
-  hfield_mprs_per_pair: int = 16
+  hfield_mprs_per_pair: int = 64
   contacts_per_world: int = 0
   stock_for_analytic_models: bool = True
   stock_pair_classes: tuple = ()

@@ -330,21 +330,29 @@ def test_missed_points_on_pairs_where_mujocos_normal_is_worse_are_counted_apart(
 
 
 def test_inner_prism_walls_are_told_apart():
-  """A heightfield contact of MuJoCo C's along a horizontal normal inside the grid is a side
-  wall's between two prisms (the terrain's surface has no such normal); at the grid's outer edge
-  the wall is the terrain's own, and a tilted normal is the surface's."""
+  """A heightfield contact of MuJoCo C's inside the grid along a normal steeper than every
+  triangle of the grid is a side wall's between two prisms (the terrain's surface has no such
+  normal); at the grid's outer edge the wall is the terrain's own, and a normal no steeper than
+  the steepest triangle may be the surface's."""
   from mjx_supportfield.tools.compare import Reference
   from mjx_supportfield.tools.compare import _inner_wall
   from mjx_supportfield.tools.compare import _scene
+  from mjx_supportfield.tools.compare import steepest_facet_nz
 
-  mjm = mujoco.MjModel.from_xml_string("""<mujoco><asset><hfield name="h" nrow="11" ncol="11" size="1 1 .2 .1"/>
-    </asset><worldbody><geom type="hfield" hfield="h" pos="1 2 0" euler="0 0 90"/>
+  peak = np.zeros((11, 11))
+  peak[5, 5] = 1.0  # 0.2 m up over cells of 0.2 m: slopes of 1 along x, y or both
+  mjm = mujoco.MjModel.from_xml_string(f"""<mujoco><asset><hfield name="h" nrow="11" ncol="11" size="1 1 .2 .1"
+    elevation="{' '.join(map(str, peak.ravel()))}"/></asset><worldbody>
+    <geom type="hfield" hfield="h" pos="1 2 0" euler="0 0 90"/>
     <body><freejoint/><geom type="sphere" size=".05"/></body></worldbody></mujoco>""")
+  assert steepest_facet_nz(mjm, 0) == pytest.approx(1.0 / np.sqrt(3.0))
   mjd = mujoco.MjData(mjm)
   mujoco.mj_kinematics(mjm, mjd)
   ref = Reference([], mjd.geom_xpos.copy(), mjd.geom_xmat.reshape(-1, 3, 3).copy())
   scene = _scene(mjm, {"stock": None}, 5e-4, 3e-3)
   inside, border = np.array([1.3, 2.2, 0.05]), np.array([1.05, 2.95, 0.05])  # the cells are 0.2 m
   assert _inner_wall(scene, ref, Contact((0, 1), -0.01, inside, np.array([0.6, 0.8, 0.0])))
+  assert _inner_wall(scene, ref, Contact((0, 1), -0.01, inside, np.array([0.0, 0.999, -0.045])))  # EPA tilted below
+  assert _inner_wall(scene, ref, Contact((0, 1), -0.01, inside, np.array([0.0, 0.866, 0.5])))  # steeper than any
   assert not _inner_wall(scene, ref, Contact((0, 1), -0.01, border, np.array([0.6, 0.8, 0.0])))
   assert not _inner_wall(scene, ref, Contact((0, 1), -0.01, inside, np.array([0.0, 0.6, 0.8])))

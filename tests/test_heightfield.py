@@ -388,6 +388,22 @@ def test_full_mpr_queue_gives_the_same_contacts(dropped):
     np.testing.assert_array_equal(roomy[field], tight[field], err_msg=field)
 
 
+def test_default_queue_holds_a_fine_grids_mprs(dropped):
+  """The MPR queue's room is counted per pair of a geom other than a sphere or a capsule (those
+  take MPRs only past the grid's edge: one in ROUND_PAIRS_PER_JOB_PAIR of theirs counts): with the
+  default room, every MPR of models/terrain.xml's bodies at rest on its fine grid (hundreds a
+  world) runs side by side from the queue, none one after another in its pair's thread."""
+  sim = load("terrain", qpos=dropped[0].d.qpos.numpy()[0])
+  collider = sf.install(sim.mjm, sim.m)
+  sf.collision(sim.m, sim.d)
+  assert collider.stats(sim.d)["hfield_mprs_unqueued"] == 0
+  types = sim.mjm.geom_type[1:]  # every geom but the terrain meets it
+  rounds = int(np.isin(types, [mujoco.mjtGeom.mjGEOM_SPHERE, mujoco.mjtGeom.mjGEOM_CAPSULE]).sum())
+  job_pairs = len(types) - rounds + -(-rounds // heightfield.ROUND_PAIRS_PER_JOB_PAIR)
+  queue = collider.state(sim.m, sim.d).hfield.job
+  assert queue.shape[0] == sim.d.nworld * job_pairs * sf.Options().hfield_mprs_per_pair
+
+
 def test_prisms_without_epa_memory_are_counted(monkeypatch):
   """Box prisms beyond the MPR queue that find no row of GJK/EPA memory left run MPR, and
   stats(d) counts them (hfield_ccd_as_mpr), so that the fallback is never silent: two boxes, one

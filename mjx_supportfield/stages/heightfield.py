@@ -87,6 +87,8 @@ from mjx_supportfield.launch.contact_quota import mixed_params
 from mjx_supportfield.launch.grid import GRID_THREADS
 from mjx_supportfield.launch.grid import HEAVY_REGISTERS
 from mjx_supportfield.options import Options
+from mjx_supportfield.stages.candidates import NCANDIDATE
+from mjx_supportfield.stages.candidates import empty_with_room
 from mjx_supportfield.stages.candidates import write_candidates
 from mjx_supportfield.stages.hfield_cells import heightfield
 from mjx_supportfield.stages.hfield_closed_form import closed_form
@@ -227,19 +229,21 @@ def stage_kernels(mode: int) -> SimpleNamespace:
           for i in range(nkept):
             n += set_bits(kept_mask[i])
           tp.job_total = n
-          tp.job_start = wp.atomic_add(hfield_count_out, COUNT_JOBS, n)
-          tp.job_count = wp.max(0, wp.min(n, hfield_job_out.shape[0] - tp.job_start))
-          if tp.job_count < n:  # no room in the queue: the rest run in hfield_contacts
-            wp.atomic_add(hfield_count_out, COUNT_UNQUEUED, n - tp.job_count)
+          if n > 0:  # a pair without jobs asks for no place (atomics on one counter from every pair wait in line)
+            tp.job_start = wp.atomic_add(hfield_count_out, COUNT_JOBS, n)
+            tp.job_count = wp.max(0, wp.min(n, hfield_job_out.shape[0] - tp.job_start))
+            if tp.job_count < n:  # no room in the queue: the rest run in hfield_contacts
+              wp.atomic_add(hfield_count_out, COUNT_UNQUEUED, n - tp.job_count)
           n = int(0)
           for i in range(nkept):
             n = queue_cell(hfield_job_out, slot, tp, kept_cell[i], kept_mask[i], n)
       for j in range(tp.job_start, tp.job_start + tp.job_count):
         if hfield_job_out[j][1] % NJOB < 2:
           tp.nprism += 1
-      kind = COUNT_KIND + 2 * geom_type[geoms[1]]
-      wp.atomic_add(hfield_count_out, kind, tp.nprism)
-      wp.atomic_add(hfield_count_out, kind + 1, tp.job_count - tp.nprism)
+      if tp.job_count > 0:
+        kind = COUNT_KIND + 2 * geom_type[geoms[1]]
+        wp.atomic_add(hfield_count_out, kind, tp.nprism)
+        wp.atomic_add(hfield_count_out, kind + 1, tp.job_count - tp.nprism)
       hfield_pair_out[slot] = tp
 
   @wp.kernel(module=module)
@@ -274,6 +278,8 @@ def stage_kernels(mode: int) -> SimpleNamespace:
     tid = wp.tid()
     for slot in range(tid, wp.min(hfield_count_in[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
       tp = hfield_pair_in[slot]
+      if tp.job_count == 0:
+        continue  # nothing to place (a closed-form pair): no wait on its kind's counters
       kind = 2 * geom_type[pair_in[tp.cid][1]]
       prism = wp.atomic_add(kind_next_out, kind, tp.nprism)
       point = wp.atomic_add(kind_next_out, kind + 1, tp.job_count - tp.nprism)
@@ -453,10 +459,11 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
       terrain, b, hf = terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
       hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
       spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
-      cands = _plane_pass(hfield, b, ms, tp, spacing)
+      cands = empty_with_room(NCANDIDATE)  # a face on rough terrain rests on many prisms (uses_ccd)
+      _plane_pass(cands, hfield, b, ms, tp, spacing)
       for j in range(tp.job_start, tp.job_start + tp.job_count):
-        cands = add_job_answer(hfield, tp, b, cands, hfield_job_in[j][1], answer_in[j], normal_in[j], spacing,
-                                mpr_options.tolerance)
+        add_job_answer(hfield, tp, b, cands, hfield_job_in[j][1], answer_in[j], normal_in[j], spacing,
+                       mpr_options.tolerance)
       # the jobs the queue had no room for, in order after the queued ones
       code = int(0)
       if tp.job_count > 0:
@@ -482,8 +489,7 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
                                            worldid, overflow_out, hfield_count_out)
             else:  # no box or mesh on a heightfield: MPR's, as _job_answer would give
               answer, normal = _job_mpr(hfield, b, ms, tp, cell * NJOB + job, mpr_options)
-            cands = add_job_answer(hfield, tp, b, cands, cell * NJOB + job, answer, normal, spacing,
-                                    mpr_options.tolerance)
+            add_job_answer(hfield, tp, b, cands, cell * NJOB + job, answer, normal, spacing, mpr_options.tolerance)
             left -= 1
           mask = mask >> 1
           job += 1
@@ -530,15 +536,29 @@ class Buffers:
 
 
 
+# of the spheres' and capsules' pairs with a heightfield (closed-form within the grid, MPR only
+# where they reach past its outer edge: a foot at a seam between tiles), one in this many counts
+# toward the MPR queue's room
+ROUND_PAIRS_PER_JOB_PAIR = 8
+
+
+def job_pairs(other_pairs: int, round_pairs: int, max_pairs: int) -> int:
+  """How many of a world's heightfield pairs its room in the MPR queue is counted in
+  (``hfield_mprs_per_pair`` each), at most ``max_pairs``: those of geoms other than spheres and
+  capsules, and one in ROUND_PAIRS_PER_JOB_PAIR of the spheres' and capsules' (``round_pairs``)."""
+  return min(other_pairs + -(-round_pairs // ROUND_PAIRS_PER_JOB_PAIR), max_pairs)
+
+
 class Heightfield:
   """The heightfield stage: what install found of the model's terrain pairs, the per-Data buffers,
   and the step's launches (the stage contract: docs/architecture.md)."""
 
   def __init__(self, options: Options, support_mode: SupportMode, mesh_support: MeshSupport, has_pairs: bool,
-               pairs_per_world: int, ccd: bool, closed_form: bool, ccd_iterations: int):
+               pairs_per_world: int, job_pairs_per_world: int, ccd: bool, closed_form: bool, ccd_iterations: int):
     self.options, self.support_mode, self.mesh_support = options, support_mode, mesh_support
     self.has_pairs = has_pairs  # a heightfield - convex pair in the model
     self.pairs_per_world = pairs_per_world  # bounds the stage's pair slots
+    self.job_pairs_per_world = job_pairs_per_world  # the MPR queue's room is hfield_mprs_per_pair times these (job_pairs)
     self.ccd = ccd  # boxes or meshes on a heightfield: their prisms by GJK/EPA (hfield_ccd)
     self.closed_form = closed_form  # spheres or capsules on a heightfield: hfield_closed_form
     self.ccd_iterations = ccd_iterations  # MuJoCo C's ccd_iterations, for GJK and EPA
@@ -547,7 +567,7 @@ class Heightfield:
     """The stage's buffers for Data ``d``."""
     nworld = d.nworld
     npair = max(1, nworld * self.pairs_per_world)
-    nmpr = npair * self.options.hfield_mprs_per_pair if self.pairs_per_world else 1
+    nmpr = max(1, nworld * self.job_pairs_per_world * self.options.hfield_mprs_per_pair)
     rows = min(max(nmpr, npair), CCD_THREADS) if self.has_pairs and self.ccd else 1
     # sized as MuJoCo Warp's collision_convex sizes its EPA memory
     nvert = 10 + 2 * self.ccd_iterations

@@ -18,7 +18,8 @@ from mjx_supportfield.geometry.support import box_corner
 from mjx_supportfield.geometry.support import hull_point
 from mjx_supportfield.geometry.support import support_funcs
 from mjx_supportfield.stages.candidates import Candidates
-from mjx_supportfield.stages.candidates import row
+from mjx_supportfield.stages.candidates import depth_at
+from mjx_supportfield.stages.candidates import normal_at
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -158,7 +159,7 @@ def outside_walls_func(mode: int) -> wp.Function:
 
 
 @wp.func
-def prism_answer_kept(c: Candidates, res: MprResult, n: wp.vec3, v0: wp.vec3, scale: float, tol: float,
+def prism_answer_kept(c: wp.ref[Candidates], res: MprResult, n: wp.vec3, v0: wp.vec3, scale: float, tol: float,
                        one_per_prism: bool) -> bool:
   """Whether a prism's MPR answer is an edge of B dipping into the top face (normal n through
   v0): the prism's witness point lies on the top triangle (answers through the side walls,
@@ -174,7 +175,7 @@ def prism_answer_kept(c: Candidates, res: MprResult, n: wp.vec3, v0: wp.vec3, sc
     return False
   allowed = wp.where(one_per_prism, 1, 0)
   for k in range(c.n):
-    if wp.dot(row(c.normal, k), res.normal) > 0.9999 and c.depth[k] >= res.depth - tol * scale:
+    if wp.dot(normal_at(c, k), res.normal) > 0.9999 and depth_at(c, k) >= res.depth - tol * scale:
       allowed -= 1
       if allowed < 0:
         return False

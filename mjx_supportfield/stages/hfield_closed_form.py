@@ -36,6 +36,7 @@ from mjx_supportfield.launch.contact_quota import ContactMixing
 from mjx_supportfield.launch.contact_quota import ContactQuota
 from mjx_supportfield.launch.contact_quota import ContactRows
 from mjx_supportfield.launch.contact_quota import mixed_params
+from mjx_supportfield.launch.grid import HEAVY_REGISTERS
 from mjx_supportfield.stages.candidates import NCANDIDATE
 from mjx_supportfield.stages.candidates import Candidates
 from mjx_supportfield.stages.candidates import add_candidate
@@ -298,10 +299,11 @@ def _sunk_part(s0: wp.vec3, s1: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, 
 
 
 @wp.func
-def closed_form_pass(hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: float, nball: int) -> Candidates:
-  """A sphere's or a capsule's contact candidates against the terrain under it: each triangle's
-  balls (_ball_for, ``nball`` of them) answered at their nearest points (module notes)."""
-  cands = empty_with_room(NCANDIDATE)
+def closed_form_pass(cands: wp.ref[Candidates], hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: float,
+                     nball: int):
+  """Adds to ``cands`` a sphere's or a capsule's contact candidates against the terrain under it:
+  each triangle's balls (_ball_for, ``nball`` of them) answered at their nearest points (module
+  notes)."""
   dx, dy = cell_size(hfield)
   ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
   for cell in range(ncell):
@@ -329,11 +331,12 @@ def closed_form_pass(hfield: Heightfield, b: Shape, tp: TerrainPair, spacing: fl
         x, q, at = _nearest_pair(x0, s0, s1, npair, p00, v1, v2)
         depth, pos, normal = _answer(hfield, dx, dy, r, c, t, p00, n, x, q, at, b.size[0], tp.band)
       if depth > 0.0:
-        cands = add_candidate(cands, pos, normal, depth, spacing)
-  return cands
+        add_candidate(cands, pos, normal, depth, spacing)
 
 
-@wp.kernel(module="mjx_supportfield.stages.hfield_closed_form")
+# at the heavy kernels' register cap (16 warps an SM instead of 10) it spills a few hundred bytes and
+# runs over twice as fast: one thread walks a pair's cells, its time is latency
+@wp.kernel(module="mjx_supportfield.stages.hfield_closed_form", cuda_max_registers=HEAVY_REGISTERS)
 def hfield_closed_form(
   # Model:
   geom_type: wp.array(dtype=int),
@@ -378,7 +381,8 @@ def hfield_closed_form(
     terrain, b, hf = terrain_pair(geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, ms, geoms, worldid)
     hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
     spacing = mc_tolerance * 2.0 * wp.length(geom_aabb[worldid % geom_aabb.shape[0], geoms[1], 1])
-    cands = closed_form_pass(hfield, b, tp, spacing, wp.where(b.gtype == GeomType.CAPSULE, NBALL, 1))
+    cands = empty_with_room(NCANDIDATE)
+    closed_form_pass(cands, hfield, b, tp, spacing, wp.where(b.gtype == GeomType.CAPSULE, NBALL, 1))
     if max_contacts > 1:
       cands.keep = tp.band  # the penetrating ones (depths include the band)
     _, margin, gap, condim, friction, solref, solreffriction, solimp, adhesion = mixed_params(

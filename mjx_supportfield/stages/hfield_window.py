@@ -24,10 +24,9 @@ from mjx_supportfield.geometry.mpr import MprSettings
 from mjx_supportfield.geometry.mpr import mpr_funcs
 from mjx_supportfield.geometry.shapes import posed_shape
 from mjx_supportfield.geometry.support import support_funcs
-from mjx_supportfield.stages.candidates import NCANDIDATE
 from mjx_supportfield.stages.candidates import Candidates
 from mjx_supportfield.stages.candidates import add_candidate
-from mjx_supportfield.stages.candidates import empty_with_room
+from mjx_supportfield.stages.candidates import add_tagged
 from mjx_supportfield.stages.hfield_cells import Heightfield
 from mjx_supportfield.stages.hfield_cells import capsule_end
 from mjx_supportfield.stages.hfield_cells import cell_corners
@@ -69,9 +68,12 @@ NKIND = 2 * NGEOMTYPE
 COUNT_PAIRS, COUNT_JOBS, COUNT_UNQUEUED, COUNT_KIND = 0, 1, 2, 3  # hfield_count: then NKIND counts
 COUNT_EPA_ROWS = COUNT_KIND + NKIND  # rows of EPA memory taken by hfield_contacts' threads
 COUNT_CCD_AS_MPR = COUNT_EPA_ROWS + 1  # prisms that found no EPA memory left and ran MPR instead
-# rows of EPA memory (each a GJK/EPA run's scratch, about 5 kB): hfield_ccd's threads, then those
-# of hfield_contacts' threads that run GJK/EPA beyond the queue
-CCD_THREADS = 8192
+# rows of EPA memory (each a GJK/EPA run's scratch, about 5 kB at MuJoCo's default ccd_iterations):
+# hfield_ccd's threads, then those of hfield_contacts' threads that run GJK/EPA beyond the queue.
+# GJK/EPA at its register cap fits 16 warps on a streaming multiprocessor: 65536 threads fill a
+# GPU of over a hundred of them once (8192 left three quarters of each idle, each thread running
+# dozens of prisms one after another), for about 330 MB
+CCD_THREADS = 65536
 
 
 @wp.struct
@@ -253,14 +255,14 @@ def _through_border(hfield: Heightfield, r: int, c: int, normal: wp.vec3) -> boo
 
 
 @wp.func
-def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: Candidates, code: int, answer: wp.vec4,
-                    normal: wp.vec3, spacing: float, tol: float) -> Candidates:
-  """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to the
-  candidates, unless it is a prism's answer through a side wall or one the face contacts
+def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: wp.ref[Candidates], code: int,
+                    answer: wp.vec4, normal: wp.vec3, spacing: float, tol: float):
+  """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to ``cands``,
+  unless it is a prism's answer through a side wall or one the face contacts
   already hold (prism_answer_kept), or a point's with a normal into the terrain or between
   two faces that hold B's contacts (fold_answer_kept)."""
   if answer[3] <= 0.0:
-    return cands
+    return
   dx, dy = cell_size(hfield)
   job = code % NJOB
   r, c = window_cell(tp, code // NJOB)
@@ -274,13 +276,13 @@ def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: Candid
     if not (_through_border(hfield, r, c, normal)
             or prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol,
                                  uses_ccd(b, code))):
-      return cands
+      return
   elif wp.dot(normal, na + nb) <= 0.0:
-    return cands  # B's surface normal must point away from the terrain
+    return  # B's surface normal must point away from the terrain
   elif not fold_answer_kept(hfield, dx, dy, r, c, job, p00, p01, p10, p11, normal,
                              1.0e-6 * (dx + dy + hfield.size[2])):
-    return cands
-  return add_candidate(cands, res.pos, normal, res.depth, spacing)
+    return
+  add_candidate(cands, res.pos, normal, res.depth, spacing)
 
 
 @wp.func
@@ -428,10 +430,10 @@ def window_funcs(mode: int) -> SimpleNamespace:
     return _job_mpr(hfield, b, ms, tp, code, mpr_options)
 
   @wp.func
-  def _plane_pass(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, spacing: float) -> Candidates:
-    """The face contacts: B's corners against the triangle under each, then each cell's
-    triangles against B's deepest points (and a capsule's ends)."""
-    cands = empty_with_room(NCANDIDATE)  # a face on rough terrain rests on many prisms (uses_ccd)
+  def _plane_pass(cands: wp.ref[Candidates], hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair,
+                  spacing: float):
+    """Adds to ``cands`` the face contacts: B's corners against the triangle under each, then each
+    cell's triangles against B's deepest points (and a capsule's ends)."""
     band = tp.band
     r0 = tp.window[0]
     r1 = tp.window[1]
@@ -466,8 +468,9 @@ def window_funcs(mode: int) -> SimpleNamespace:
           p = capsule_end(b, job % nlow - 1, n)
         depth = plane_depth(p, p00, wp.where(t == 0, p10, p11), wp.where(t == 0, p11, p01), n, band)
         if depth > 0.0:
-          cands = add_candidate(cands, p + 0.5 * depth * n, n, depth, spacing)
-    return cands
+          # a mesh's hull vertices under a triangle are many points of one face on one plane
+          on_face = wp.where(item < ncorner and b.gtype == GeomType.MESH, 1, 0)
+          add_tagged(cands, p + 0.5 * depth * n, n, depth, spacing, on_face)
 
   return SimpleNamespace(_window=_window, _cell_jobs=_cell_jobs, _job_mpr=_job_mpr, _job_answer=_job_answer,
                          _plane_pass=_plane_pass)

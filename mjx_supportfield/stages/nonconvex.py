@@ -139,19 +139,19 @@ def _step(s: Shape, nonconvex: int, sdfs: SdfSet) -> float:
 
 
 @wp.func
-def _point(c: Candidates, dst: Shape, dst_nonconvex: int, sdfs: SdfSet, p: wp.vec3, radius: float, side: int,
-           band: float, spacing: float) -> Candidates:
-  """A point of the source geom (a ball of ``radius`` around p) in dst's SDF. side 0: dst is
-  geom 1 (the normal is dst's gradient), side 1: dst is geom 2 (its opposite)."""
+def _point(c: wp.ref[Candidates], dst: Shape, dst_nonconvex: int, sdfs: SdfSet, p: wp.vec3, radius: float,
+           side: int, band: float, spacing: float):
+  """Adds to ``c`` a point of the source geom (a ball of ``radius`` around p) in dst's SDF. side
+  0: dst is geom 1 (the normal is dst's gradient), side 1: dst is geom 2 (its opposite)."""
   phi = signed_distance(dst, dst_nonconvex, sdfs, p) - radius
   if phi >= band:
-    return c
+    return
   grad = shape_sdf_grad(dst, _field(dst_nonconvex, sdfs), p, _step(dst, dst_nonconvex, sdfs))
   n = wp.where(side == 0, grad, -grad)
   # midpoint of the source's surface point (p - radius grad) and dst's nearest surface point
   # (p - (phi + radius) grad); stored grown by the band, as the writer expects
   mid = p - 0.5 * (phi + 2.0 * radius) * grad
-  return add_candidate(c, mid + 0.5 * band * n, n, band - phi, spacing)
+  add_candidate(c, mid + 0.5 * band * n, n, band - phi, spacing)
 
 
 @wp.func
@@ -246,17 +246,16 @@ def candidate_funcs(mode: int) -> SimpleNamespace:
     return p0, p1, 0.0, i0 < i1  # each edge of a closed mesh belongs to two triangles: take it once
 
   @wp.func
-  def pair_candidates(a: Shape, nc1: int, b: Shape, nc2: int, sdfs: SdfSet, ms: MeshSupport,
-                      mesh_vertnum: wp.array(dtype=int), mesh_face: wp.array(dtype=wp.vec3i),
+  def pair_candidates(cands: wp.ref[Candidates], a: Shape, nc1: int, b: Shape, nc2: int, sdfs: SdfSet,
+                      ms: MeshSupport, mesh_vertnum: wp.array(dtype=int), mesh_face: wp.array(dtype=wp.vec3i),
                       mesh_faceadr: wp.array(dtype=int), mesh_facenum: wp.array(dtype=int), band: float,
-                      spacing: float) -> Candidates:
-    """Contact candidates of a pair with a non-convex mesh: the vertex pass both ways (B's
+                      spacing: float):
+    """Adds to ``cands`` the contact candidates of a pair with a non-convex mesh: the vertex pass both ways (B's
     samples in A's SDF, then A's in B's), then, when it found nothing, the edge pass both ways.
 
     One loop with runtime bounds and one call site for the SDF point and the edge search:
     unrolled (a box's 8 corners and 12 edges, 26 samples, four passes) the CUDA build of this
     module ran for over 45 minutes."""
-    cands = empty()
     stage = int(0)  # 2 x edges + side
     k = int(0)
     while stage < 4:
@@ -284,8 +283,7 @@ def candidate_funcs(mode: int) -> SimpleNamespace:
       q = p0
       if wp.length(p1 - p0) > 0.0:
         q = _segment_min(dst, dst_nc, sdfs, p0, p1, _step(dst, dst_nc, sdfs) * 4.0)
-      cands = _point(cands, dst, dst_nc, sdfs, q, radius, side, band, spacing)
-    return cands
+      _point(cands, dst, dst_nc, sdfs, q, radius, side, band, spacing)
 
   return SimpleNamespace(pair_candidates=pair_candidates)
 
@@ -348,8 +346,9 @@ def nonconvex_narrowphase(mode: int) -> wp.Kernel:
       band = wp.max(margin + gap, 0.0)
       ab = worldid % geom_aabb.shape[0]
       spacing = mc_tolerance * 2.0 * wp.min(wp.length(geom_aabb[ab, g1, 1]), wp.length(geom_aabb[ab, g2, 1]))
-      cands = pair_candidates(a, nc1, b, nc2, sdfs, ms, mesh_vertnum, mesh_face, mesh_faceadr, mesh_facenum,
-                              band, spacing)
+      cands = empty()
+      pair_candidates(cands, a, nc1, b, nc2, sdfs, ms, mesh_vertnum, mesh_face, mesh_faceadr, mesh_facenum, band,
+                      spacing)
       write_candidates(
         cands, max_contacts, wp.identity(n=3, dtype=float), wp.vec3(0.0), band, naconmax_in, margin, gap, condim,
         friction, solref, solreffriction, solimp, adhesion, geoms, pairid_in[cid], worldid, contacts_out, quota,

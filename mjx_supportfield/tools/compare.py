@@ -228,6 +228,7 @@ class _Scene:
   names: list
   size: np.ndarray  # bounding diameter per geom, 0 for planes and heightfields
   hfield: set  # heightfield geom ids
+  steepest: dict  # heightfield geom id -> steepest_facet_nz
   nonconvex: set  # geoms some plugin implementation collides as non-convex meshes
   min_depth: float
   radius: float
@@ -260,21 +261,40 @@ def deep_points(scene: _Scene, ref: Reference, contacts: list[Contact]) -> list[
   return rows
 
 
-# a heightfield contact normal this close to horizontal (in the terrain's frame) is a prism's side wall
+# a heightfield contact normal steeper than the grid's steepest facet by this much (its z in the
+# terrain's frame) is a prism's side wall
 WALL_NZ = 1e-3
+
+
+def steepest_facet_nz(mjm: mujoco.MjModel, g: int) -> float:
+  """The smallest z component (in the terrain's frame) of the normals of heightfield geom ``g``'s
+  triangles, as MuJoCo splits each cell: no point of the terrain's surface has a steeper normal."""
+  data = int(mjm.geom_dataid[g])
+  nrow, ncol = int(mjm.hfield_nrow[data]), int(mjm.hfield_ncol[data])
+  size = mjm.hfield_size[data]
+  adr = int(mjm.hfield_adr[data])
+  z = np.asarray(mjm.hfield_data[adr:adr + nrow * ncol], dtype=float).reshape(nrow, ncol) * size[2]
+  dx, dy = 2.0 * size[0] / (ncol - 1), 2.0 * size[1] / (nrow - 1)
+  z00, z01, z10, z11 = z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]
+  # (p00, p10, p11) and (p00, p11, p01): each triangle's slope along x and y
+  slopes = [((z11 - z10) / dx, (z10 - z00) / dy), ((z01 - z00) / dx, (z11 - z01) / dy)]
+  return float(min((1.0 / np.sqrt(1.0 + gx * gx + gy * gy)).min() for gx, gy in slopes))
 
 
 def _inner_wall(scene: _Scene, ref: Reference, c: Contact) -> bool:
   """Whether MuJoCo C's heightfield contact ``c`` is a side wall's of a prism inside the grid: its
-  normal horizontal in the terrain's frame, its point a cell or more from the outer edge. The
-  terrain's surface has no such normal anywhere (a heightfield is a graph over its grid): those
-  walls lie inside the solid, between two prisms, and only the outer ones bound it."""
+  normal steeper (in the terrain's frame) than every triangle of the grid, its point a cell or
+  more from the outer edge. The terrain's surface has no such normal anywhere (a heightfield is a
+  graph over its grid): C's penetration of a prism left through a wall, or EPA ended tilted
+  toward one (its answer for a geom sunk past a steep facet), and those walls lie inside the
+  solid, between two prisms; only the outer ones bound it."""
   hf = [g for g in c.geom if g in scene.hfield]
   if not hf:
     return False
   g = hf[0]
   rot = ref.xmat[g]
-  if abs(float(np.dot(rot[:, 2], c.normal))) >= WALL_NZ:
+  nz = float(np.dot(rot[:, 2], c.normal)) * (1.0 if c.geom[0] == g else -1.0)  # out of the terrain
+  if nz >= scene.steepest[g] - WALL_NZ:
     return False
   data = int(scene.mjm.geom_dataid[g])
   size = scene.mjm.hfield_size[data]
@@ -422,7 +442,9 @@ def _scene(mjm: mujoco.MjModel, impls: dict, min_depth: float, radius: float) ->
   for opts in impls.values():
     if opts is not None:
       nonconvex |= set(nonconvex_geom_ids(mjm, opts.nonconvex_geoms))
-  return _Scene(mjm, names, np.where(unbounded, 0.0, 2.0 * mjm.geom_rbound), hfield, nonconvex, min_depth, radius)
+  steepest = {g: steepest_facet_nz(mjm, g) for g in hfield}
+  return _Scene(mjm, names, np.where(unbounded, 0.0, 2.0 * mjm.geom_rbound), hfield, steepest, nonconvex, min_depth,
+                radius)
 
 
 def compare_states(mjm: mujoco.MjModel, states: list[np.ndarray], impls: dict, min_depth: float = 5e-4,

@@ -1,0 +1,87 @@
+"""candidates.py: merging contact candidates in place and choosing the ones written.
+
+The heightfield, closed-form and non-convex kernels hold a pair's candidates in one struct that
+their functions change by reference; these tests run the functions in a small kernel and check
+what each keeps, merges, replaces and picks.
+"""
+
+import numpy as np
+import warp as wp
+
+from mjx_supportfield.stages.candidates import NCANDIDATE
+from mjx_supportfield.stages.candidates import add_candidate
+from mjx_supportfield.stages.candidates import choose
+from mjx_supportfield.stages.candidates import depth_at
+from mjx_supportfield.stages.candidates import empty_with_room
+from mjx_supportfield.stages.candidates import normal_at
+from mjx_supportfield.stages.candidates import pos_at
+
+
+@wp.kernel(module="unique", enable_backward=False)
+def _merge_and_choose(
+  pos_in: wp.array(dtype=wp.vec3),
+  depth_in: wp.array(dtype=float),
+  room: int,
+  spacing: float,
+  max_contacts: int,
+  keep: float,
+  n_out: wp.array(dtype=int),
+  pos_out: wp.array(dtype=wp.vec3),
+  normal_out: wp.array(dtype=wp.vec3),
+  depth_out: wp.array(dtype=float),
+  order_out: wp.array(dtype=int),
+):
+  cands = empty_with_room(room)
+  for i in range(pos_in.shape[0]):
+    # each candidate's normal names it, so that the test sees which one a slot holds
+    add_candidate(cands, pos_in[i], wp.vec3(float(i), 0.0, 1.0), depth_in[i], spacing)
+  cands.keep = keep
+  n_out[0] = cands.n
+  for k in range(cands.n):
+    pos_out[k] = pos_at(cands, k)
+    normal_out[k] = normal_at(cands, k)
+    depth_out[k] = depth_at(cands, k)
+  order = choose(cands, max_contacts)
+  for k in range(NCANDIDATE):
+    order_out[k] = order[k]
+
+
+def _run(pos, depth, room=NCANDIDATE, spacing=0.01, max_contacts=4, keep=1.0e10):
+  with wp.ScopedDevice("cpu"):
+    n = wp.zeros(1, dtype=int)
+    p, nrm = wp.zeros(NCANDIDATE, dtype=wp.vec3), wp.zeros(NCANDIDATE, dtype=wp.vec3)
+    d, order = wp.zeros(NCANDIDATE, dtype=float), wp.zeros(NCANDIDATE, dtype=int)
+    wp.launch(_merge_and_choose, dim=1,
+              inputs=[wp.array(np.asarray(pos, dtype=np.float32), dtype=wp.vec3),
+                      wp.array(np.asarray(depth, dtype=np.float32), dtype=float), room, spacing, max_contacts, keep],
+              outputs=[n, p, nrm, d, order])
+    count = int(n.numpy()[0])
+    return (count, p.numpy()[:count], nrm.numpy()[:count, 0].astype(int), d.numpy()[:count],
+            [k for k in order.numpy() if k >= 0])
+
+
+def test_near_candidates_merge_into_the_deeper():
+  count, pos, source, depth, _ = _run([[0, 0, 0], [0.005, 0, 0], [0.1, 0, 0], [0.004, 0, 0]],
+                                      [0.01, 0.02, 0.03, 0.015])
+  assert count == 2
+  # the second replaced the first in its slot (deeper, within spacing); the fourth was shallower
+  np.testing.assert_allclose(pos[0], [0.005, 0, 0], atol=1e-7)
+  assert source.tolist() == [1, 2]
+  np.testing.assert_allclose(depth, [0.02, 0.03], atol=1e-7)
+
+
+def test_a_full_list_gives_up_its_shallowest():
+  pos = [[0.1 * i, 0, 0] for i in range(5)]
+  count, _, source, depth, _ = _run(pos, [0.05, 0.01, 0.04, 0.03, 0.02], room=3)
+  assert count == 3
+  # 0.03 replaced 0.01 (slot 1), then 0.02 was shallower than all three kept
+  assert source.tolist() == [0, 3, 2]
+  np.testing.assert_allclose(depth, [0.05, 0.03, 0.04], atol=1e-7)
+
+
+def test_choice_starts_deepest_then_spreads():
+  pos = [[0, 0, 0], [0.01, 0, 0], [1.0, 0, 0], [0.5, 0, 0]]
+  _, _, _, _, order = _run(pos, [0.01, 0.05, 0.02, 0.03], spacing=0.001, max_contacts=2)
+  assert order == [1, 2]  # the deepest, then the one farthest from it
+  _, _, _, _, order = _run(pos, [0.01, 0.05, 0.02, 0.03], spacing=0.001, max_contacts=2, keep=0.015)
+  assert sorted(order[2:]) == [3]  # beyond max_contacts only those deeper than keep

@@ -159,13 +159,14 @@ def test_masked_reset_touches_only_the_worlds_it_ends():
     assert np.abs(after[w] - episodes.qpos0).max() <= soak.RESET_SHIFT + 1e-6
 
 
-def test_mujoco_c_runs_the_soaks_driving_and_check():
-  """soak_mujoco_c.py drives MuJoCo C worlds as soak.py drives the plugin's and counts the same
-  check: every world judged at each check unless its robot left the terrain, and a geom pushed
-  into the ground is found."""
-  import soak_mujoco_c
+@pytest.mark.parametrize("engine", ["mujoco_c", "plugin"])
+def test_soak_rate_runs_the_soaks_driving_and_check(engine):
+  """soak_rate.py drives MuJoCo C's or MuJoCo Warp's worlds as soak.py drives the plugin's and
+  counts the same check: every world judged at each check unless its robot left the terrain, and
+  a geom pushed into the ground is found."""
+  import soak_rate
 
-  report = soak_mujoco_c.run(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"), 2, 100, 50)
+  report = soak_rate.run(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"), 2, 100, 50, engine)
   assert 0 < report["world_checks"] <= 4
   assert report["geoms_in_ground"] == sum(len(f["geoms"]) for f in report["found"])
   mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
@@ -174,8 +175,8 @@ def test_mujoco_c_runs_the_soaks_driving_and_check():
   mjd = soak.real_scenes.initial_data(mjm)
   mujoco.mj_kinematics(mjm, mjd)
   foot = mjm.geom("r0_FR_foot_collision").id
-  view = soak_mujoco_c.types.SimpleNamespace(nworld=1, geom_xpos=soak_mujoco_c._batch([mjd], "geom_xpos"),
-                                              xpos=soak_mujoco_c._batch([mjd], "xpos"))
+  view = soak_rate.types.SimpleNamespace(nworld=1, geom_xpos=soak_rate._batch([mjd], "geom_xpos"),
+                                          xpos=soak_rate._batch([mjd], "xpos"))
   assert not ground.geoms_through(view)
   mjd.geom_xpos[foot, 2] -= 0.2  # well under the rough tile
   assert ground.geoms_through(view) == [(0, "r0_FR_foot_collision")]

@@ -119,6 +119,29 @@ def test_ground_finds_a_geom_through_the_terrain():
   np.testing.assert_array_equal(ground.off_terrain(d), [False, False, True])
 
 
+def test_a_geom_in_the_ground_fails_only_at_two_chunk_ends_in_a_row():
+  """check_chunk counts a geom whose centre is in the ground and fails the chunk only when the
+  same geom of the same world was there at the chunk end before (a jam MuJoCo C also makes and
+  leaves again is reported, a geom that stays through the ground fails)."""
+  soak = _soak_module()
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
+  mjm.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
+  m = mjw.put_model(mjm)
+  collider = install(mjm, m)
+  d = mjw.put_data(mjm, soak.real_scenes.initial_data(mjm), nworld=2, nconmax=64, njmax=256)
+  mjw.forward(m, d)
+  ground = soak.Ground(mjm)
+  trunk = soak.real_scenes.free_bodies(mjm)[0]
+  qpos = d.qpos.numpy()
+  qpos[1, mjm.jnt_qposadr[mjm.body_jntadr[trunk]] + 2] -= 1.0  # world 1's first robot a metre down
+  d.qpos.assign(qpos)
+  mjw.forward(m, d)
+  row, bad, through = soak.check_chunk(d, collider, 2, None, ground)
+  assert row["geoms_through_ground"] == len(through) > 0 and row["geoms_stuck"] == 0 and not bad
+  row, bad, _ = soak.check_chunk(d, collider, 2, None, ground, set(through[:2]) | {(0, through[0][1])})
+  assert row["geoms_stuck"] == 2 and bad and "two chunk ends in a row" in bad[0]
+
+
 def test_a_reset_lifts_robots_out_of_the_ground():
   """A reset shifts each robot horizontally from the keyframe and lifts it clear of the bumps it
   would sink into there: no geom of a reset world is in the ground more than the solver's slack."""

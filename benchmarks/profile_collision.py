@@ -45,6 +45,11 @@ def _value(text: str):
     return text
 
 
+def _capped(kernel, cap: int):
+  """``kernel`` rebuilt in a module of its own with at most ``cap`` registers a thread."""
+  return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
+
+
 @contextlib.contextmanager
 def _register_cap(cap):
   """Within the block, the narrow phase's heavy kernels are rebuilt with at most ``cap``
@@ -57,7 +62,7 @@ def _register_cap(cap):
   saved_stage = heightfield.stage_kernels
 
   def capped(kernel):
-    return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
+    return _capped(kernel, cap)
 
   @functools.lru_cache(maxsize=None)
   def capped_pass(mode):
@@ -92,7 +97,7 @@ def _hfield_register_cap(cap):
   saved_closed_form = heightfield.hfield_closed_form
 
   def capped(kernel):
-    return wp.kernel(kernel.func, module="unique", enable_backward=False, cuda_max_registers=cap)
+    return _capped(kernel, cap)
 
   heightfield.contacts_kernel = functools.lru_cache(maxsize=None)(lambda mode, ccd: capped(saved_contacts(mode, ccd)))
   heightfield.hfield_closed_form = capped(saved_closed_form)

@@ -30,10 +30,11 @@ the worlds whose episode ends (world w after chunks k with (k + w) % N == N - 1:
 fraction 1/N of the worlds each time) are reset as mjlab resets them: ``mjw.reset_data`` with that
 mask, then the keyframe's state shifted horizontally by up to 5 cm and each robot lifted clear
 of the ground it would sink into there (as a spawn on terrain must be; SPAWN_POOL such spawns are
-made at the first reset and drawn at random), small random velocities and ``mjw.forward``. A world in which a robot has walked off the terrain (its root beyond every
-static heightfield and box, seen from above) ends its episode too, as an RL run's out-of-bounds
-termination ends it; its geoms are not judged in that chunk, and the count is reported. Random controls feed the robots energy, so the energy bound is reported but not
-judged while they are on.
+made at the first reset and drawn at random), small random velocities and ``mjw.forward``. A
+world in which a robot has walked off the terrain (its root beyond every static heightfield and
+box, seen from above) ends its episode too, as an RL run's out-of-bounds termination ends it; its
+geoms are not judged in that chunk, and the count is reported. Random controls feed the robots
+energy, so the energy bound is reported but not judged while they are on.
 The run stops at ``steps`` (in all, counted over every segment) or before a chunk that would end
 more than ``minutes`` after the script started (setup and compiling included; judged by the
 slowest chunk so far, the first chunk always runs), and the JSON says which.

@@ -167,16 +167,14 @@ class Collider:
       self.warm_slots = warmstart.slots_per_world(min(nmpr, max_pairs))
       # bounds its kernels' pairs; boxes and meshes collide prisms by GJK/EPA
       on_hfield = (t1 == GeomType.HFIELD) & kept
-      round_types = [int(GeomType.SPHERE), int(GeomType.CAPSULE)]
+      convex_on_hfield = on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))
+      # spheres and capsules on terrain: the closed-form kernel (hfield_closed_form.py)
+      round_on_hfield = on_hfield & np.isin(t2, [int(GeomType.SPHERE), int(GeomType.CAPSULE)])
       self.hfield = heightfield.Heightfield(
-        options, self.support_mode, self.mesh_support, has_hfield_pairs,
-        min(int((on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))).sum()), max_pairs),
-        heightfield.job_pairs(int((on_hfield & np.isin(t2, list(map(int, CONVEX_TYPES)))
-                                   & ~np.isin(t2, round_types)).sum()),
-                              int((on_hfield & np.isin(t2, round_types)).sum()), max_pairs),
+        options, self.support_mode, self.mesh_support, has_hfield_pairs, min(int(convex_on_hfield.sum()), max_pairs),
+        heightfield.job_pairs(int((convex_on_hfield & ~round_on_hfield).sum()), int(round_on_hfield.sum()), max_pairs),
         bool((on_hfield & np.isin(t2, [int(GeomType.BOX), int(GeomType.MESH)])).any()),
-        # spheres and capsules on terrain: the closed-form kernel (hfield_closed_form.py)
-        bool((on_hfield & np.isin(t2, round_types)).any()),
+        bool(round_on_hfield.any()),
         int(mjm.opt.ccd_iterations))
       ncmeshes = {int(mjm.geom_dataid[g]) for g in ncgeoms}
       sdfs = nonconvex.SdfSet()

@@ -9,7 +9,10 @@ import numpy as np
 import warp as wp
 
 from mjx_supportfield.stages.candidates import NCANDIDATE
-from mjx_supportfield.stages.candidates import add_candidate
+from mjx_supportfield.stages.candidates import TAG_DEEPEST
+from mjx_supportfield.stages.candidates import TAG_PRISM
+from mjx_supportfield.stages.candidates import TAG_VERTEX
+from mjx_supportfield.stages.candidates import add_tagged
 from mjx_supportfield.stages.candidates import choose
 from mjx_supportfield.stages.candidates import depth_at
 from mjx_supportfield.stages.candidates import empty_with_room
@@ -21,6 +24,7 @@ from mjx_supportfield.stages.candidates import pos_at
 def _merge_and_choose(
   pos_in: wp.array(dtype=wp.vec3),
   depth_in: wp.array(dtype=float),
+  tag_in: wp.array(dtype=int),
   room: int,
   spacing: float,
   max_contacts: int,
@@ -34,7 +38,7 @@ def _merge_and_choose(
   cands = empty_with_room(room)
   for i in range(pos_in.shape[0]):
     # each candidate's normal names it, so that the test sees which one a slot holds
-    add_candidate(cands, pos_in[i], wp.vec3(float(i), 0.0, 1.0), depth_in[i], spacing)
+    add_tagged(cands, pos_in[i], wp.vec3(float(i), 0.0, 1.0), depth_in[i], spacing, tag_in[i])
   cands.keep = keep
   n_out[0] = cands.n
   for k in range(cands.n):
@@ -46,14 +50,21 @@ def _merge_and_choose(
     order_out[k] = order[k]
 
 
-def _run(pos, depth, room=NCANDIDATE, spacing=0.01, max_contacts=4, keep=1.0e10):
+def _tag(triangle, source):
+  """Candidates.tag of a candidate of terrain triangle ``triangle`` (candidates.triangle_tag)."""
+  return 4 * triangle + 1 + source
+
+
+def _run(pos, depth, room=NCANDIDATE, spacing=0.01, max_contacts=4, keep=1.0e10, tags=None):
+  tags = np.zeros(len(pos), dtype=np.int32) if tags is None else np.asarray(tags, dtype=np.int32)
   with wp.ScopedDevice("cpu"):
     n = wp.zeros(1, dtype=int)
     p, nrm = wp.zeros(NCANDIDATE, dtype=wp.vec3), wp.zeros(NCANDIDATE, dtype=wp.vec3)
     d, order = wp.zeros(NCANDIDATE, dtype=float), wp.zeros(NCANDIDATE, dtype=int)
     wp.launch(_merge_and_choose, dim=1,
               inputs=[wp.array(np.asarray(pos, dtype=np.float32), dtype=wp.vec3),
-                      wp.array(np.asarray(depth, dtype=np.float32), dtype=float), room, spacing, max_contacts, keep],
+                      wp.array(np.asarray(depth, dtype=np.float32), dtype=float), wp.array(tags, dtype=int), room,
+                      spacing, max_contacts, keep],
               outputs=[n, p, nrm, d, order])
     count = int(n.numpy()[0])
     return (count, p.numpy()[:count], nrm.numpy()[:count, 0].astype(int), d.numpy()[:count],
@@ -85,3 +96,15 @@ def test_choice_starts_deepest_then_spreads():
   assert order == [1, 2]  # the deepest, then the one farthest from it
   _, _, _, _, order = _run(pos, [0.01, 0.05, 0.02, 0.03], spacing=0.001, max_contacts=2, keep=0.015)
   assert sorted(order[2:]) == [3]  # beyond max_contacts only those deeper than keep
+
+
+def test_a_triangle_gives_one_contact_its_prisms_where_there_is_one():
+  # triangle 7: a corner and the deepest point deeper than its prism's answer; triangle 9: two
+  # corners and no prism answer; an untagged candidate between them
+  pos = [[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [1.0, 0, 0], [1.1, 0, 0], [0.5, 0, 0]]
+  depth = [0.05, 0.04, 0.01, 0.03, 0.02, 0.001]
+  tags = [_tag(7, TAG_VERTEX), _tag(7, TAG_DEEPEST), _tag(7, TAG_PRISM), _tag(9, TAG_VERTEX), _tag(9, TAG_VERTEX), 0]
+  _, _, _, _, order = _run(pos, depth, spacing=0.001, max_contacts=5, tags=tags)
+  assert sorted(order) == [2, 3, 5]  # triangle 7's prism answer, triangle 9's deeper corner, the untagged
+  _, _, _, _, order = _run(pos, depth, spacing=0.001, max_contacts=1, keep=0.0, tags=tags)
+  assert sorted(order) == [2, 3, 5]  # beyond max_contacts by the same rule

@@ -14,7 +14,11 @@ from mjx_supportfield.types import FAR
 NCANDIDATE = 32  # room for contact candidates per pair before the final choice (the most any source asks)
 ROOM = 16  # candidates a source keeps unless it asks for more (empty_with_room)
 MAX_CONTACTS = 8  # most contacts of the spread choice per pair (Options.max_contacts_per_pair bounds it too)
-SAME_NORMAL = 0.9999  # cosine above which two candidates' normals are one (a terrain triangle's plane)
+# sources of a box's or a mesh's candidates of a terrain triangle (Candidates.tag): its prism's
+# answer, the geom's deepest point under the triangle's plane, a corner (hull vertex) under it
+TAG_PRISM = 0
+TAG_DEEPEST = 1
+TAG_VERTEX = 2
 
 mat_cand = wp.types.matrix(shape=(NCANDIDATE, 3), dtype=float)
 vec_cand = wp.types.vector(length=NCANDIDATE, dtype=float)
@@ -32,11 +36,10 @@ class Candidates:
   cut: int  # 1 when the source had to skip part of the work (the caller's overflow)
   room: int  # candidates kept at most (<= NCANDIDATE); past it a deeper one replaces the shallowest
   keep: float  # candidates deeper than this are written beyond max_contacts (FAR: none)
-  # 1 marks a candidate that is one of many points of a geom's face (a mesh's hull vertex under a
-  # terrain triangle): beyond max_contacts such a one is written only where no candidate written
-  # before has its normal, so that a face on one plane gives that plane's few points, not one a
-  # vertex
-  on_face: vec_order
+  # a box's or a mesh's candidate of terrain triangle t: 4 t + 1 + its source (TAG_PRISM,
+  # TAG_DEEPEST, TAG_VERTEX; 0: no triangle's). Such a geom gets one contact a triangle, its
+  # prism's answer where there is one, as MuJoCo C gets one a prism, not one a corner
+  tag: vec_order
 
 
 @wp.func
@@ -85,16 +88,23 @@ for (int i = 0; i < 3; ++i) {
   c.normal.data[k][i] = normal.c[i];
 }
 c.depth.c[k] = depth;
-c.on_face.c[k] = on_face;
+c.tag.c[k] = tag;
 """)
-def _put(c: wp.ref[Candidates], k: int, pos: wp.vec3, normal: wp.vec3, depth: float, on_face: int):
+def _put(c: wp.ref[Candidates], k: int, pos: wp.vec3, normal: wp.vec3, depth: float, tag: int):
   ...
 
 
-@wp.func_native("""return c.on_face.c[k];""")
-def on_face_at(c: wp.ref[Candidates], k: int) -> int:
-  """Whether candidate k is one of many points of a face (Candidates.on_face)."""
+@wp.func_native("""return c.tag.c[k];""")
+def tag_at(c: wp.ref[Candidates], k: int) -> int:
+  """Candidate k's terrain triangle tag (Candidates.tag)."""
   ...
+
+
+@wp.func
+def triangle_tag(triangle: int, source: int) -> int:
+  """Candidates.tag of a mesh's candidate of terrain triangle ``triangle`` from ``source``
+  (TAG_PRISM, TAG_DEEPEST or TAG_VERTEX)."""
+  return 4 * triangle + 1 + source
 
 
 @wp.func
@@ -106,15 +116,15 @@ def add_candidate(c: wp.ref[Candidates], pos: wp.vec3, normal: wp.vec3, depth: f
 
 
 @wp.func
-def add_tagged(c: wp.ref[Candidates], pos: wp.vec3, normal: wp.vec3, depth: float, spacing: float, on_face: int):
-  """add_candidate, the candidate marked as one of many points of a face or not (Candidates.on_face)."""
+def add_tagged(c: wp.ref[Candidates], pos: wp.vec3, normal: wp.vec3, depth: float, spacing: float, tag: int):
+  """add_candidate, the candidate tagged with its terrain triangle (Candidates.tag)."""
   for k in range(c.n):
     if wp.length(pos_at(c, k) - pos) < spacing:
       if depth > depth_at(c, k):
-        _put(c, k, pos, normal, depth, on_face)
+        _put(c, k, pos, normal, depth, tag)
       return
   if c.n < c.room:
-    _put(c, c.n, pos, normal, depth, on_face)
+    _put(c, c.n, pos, normal, depth, tag)
     c.n = c.n + 1
     return
   shallowest = int(0)
@@ -122,25 +132,42 @@ def add_tagged(c: wp.ref[Candidates], pos: wp.vec3, normal: wp.vec3, depth: floa
     if depth_at(c, k) < depth_at(c, shallowest):
       shallowest = k
   if depth > depth_at(c, shallowest):
-    _put(c, shallowest, pos, normal, depth, on_face)
+    _put(c, shallowest, pos, normal, depth, tag)
 
 
 @wp.func
-def _new_normal(c: wp.ref[Candidates], chosen: vec_order, taken: int, k: int) -> bool:
-  """Whether candidate k's normal differs from that of each of the first ``taken`` chosen."""
-  n = normal_at(c, k)
-  for j in range(taken):
-    if wp.dot(normal_at(c, chosen[j]), n) > SAME_NORMAL:
-      return False
+def _stands_for_triangle(c: wp.ref[Candidates], k: int) -> bool:
+  """Whether tagged candidate k is its terrain triangle's contact: the prism's answer where
+  there is one, else the triangle's deepest candidate (Candidates.tag)."""
+  tag = tag_at(c, k)
+  prism = (tag - 1) % 4 == TAG_PRISM
+  for j in range(c.n):
+    other = tag_at(c, j)
+    if j != k and other != 0 and (other - 1) // 4 == (tag - 1) // 4:
+      other_prism = (other - 1) % 4 == TAG_PRISM
+      if other_prism and not prism:
+        return False
+      if other_prism == prism and (depth_at(c, j) > depth_at(c, k) or (depth_at(c, j) == depth_at(c, k) and j < k)):
+        return False
   return True
+
+
+@wp.func
+def _writes(c: wp.ref[Candidates], taken: int, spread: int, k: int) -> bool:
+  """Whether the choice writes visited candidate k after ``taken`` chosen: within the spread,
+  or beyond it when deeper than ``c.keep``; of a box's or a mesh's candidates of one terrain
+  triangle, only the one that stands for it (Candidates.tag)."""
+  if tag_at(c, k) != 0 and not _stands_for_triangle(c, k):
+    return False
+  return taken < spread or depth_at(c, k) > c.keep
 
 
 @wp.func
 def choose(c: wp.ref[Candidates], max_contacts: int) -> vec_order:
   """Candidates to write, in order (-1 past the end): the deepest, then each time the one
-  farthest from those already visited, up to max_contacts (at most MAX_CONTACTS); the rest
-  of that order only where deeper than ``c.keep`` (and, for a point of a face, on a plane of its
-  own: Candidates.on_face)."""
+  farthest from those already visited, up to max_contacts (at most MAX_CONTACTS) written; the
+  rest of that order only where deeper than ``c.keep``; a box's or a mesh's candidates one a
+  terrain triangle (_writes)."""
   out = vec_order()
   for k in range(NCANDIDATE):
     out[k] = -1
@@ -154,9 +181,8 @@ def choose(c: wp.ref[Candidates], max_contacts: int) -> vec_order:
     if depth_at(c, k) > depth_at(c, cur):
       cur = k
   taken = int(0)
-  step = int(0)
-  while cur >= 0 and (step < spread or c.keep < FAR):
-    if step < spread or (depth_at(c, cur) > c.keep and (on_face_at(c, cur) == 0 or _new_normal(c, out, taken, cur))):
+  while cur >= 0 and (taken < spread or c.keep < FAR):
+    if _writes(c, taken, spread, cur):
       out[taken] = cur
       taken += 1
     nearest[cur] = -1.0
@@ -169,7 +195,6 @@ def choose(c: wp.ref[Candidates], max_contacts: int) -> vec_order:
         if nearest[k] > best_dist:
           cur = k
           best_dist = nearest[k]
-    step += 1
   return out
 
 

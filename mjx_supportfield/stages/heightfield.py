@@ -31,9 +31,10 @@ give contact candidates in three passes:
   triangle beside the fold, it touches the triangle across the fold only at that edge.
 Four kernels: hfield_jobs finds each pair's cells and its prism and point MPRs that pass
 cheap tests (B above the triangle's plane, outside a prism's side wall, a point outside B by
-one support query) and queues them; hfield_mpr runs the queued MPRs, one thread each, so that a
-warp's lanes all run MPRs side by side (one thread a pair ran its ten or so one after another,
-beside lanes that had none), and hfield_ccd the queued GJK/EPA prisms of boxes and meshes on
+one support query; for a box, a point outside it, or a prism parted from it by one of the box's
+axes or an edge pair's: geometry/box_prism.py) and queues them; hfield_mpr runs the queued MPRs,
+one thread each, so that a warp's lanes all run MPRs side by side (one thread a pair ran its ten
+or so one after another, beside lanes that had none), and hfield_ccd the queued GJK/EPA prisms of boxes and meshes on
 CCD_THREADS threads, each with a row of EPA memory; hfield_contacts, one thread a pair, adds the
 plane pass and the MPR answers in job order. MPRs that find the queue full
 (``Options.hfield_mprs_per_pair``) run in hfield_contacts instead: the same contacts, slower (its
@@ -51,9 +52,12 @@ points farthest from those already chosen are written, up to ``max_contacts``, a
 every other candidate that penetrates: each is a distinct terrain feature inside the geom (a
 peak or ridge under a face, a corner in a triangle), as MuJoCo's one contact per triangle prism
 is, and a geom lying on rough terrain rests on all of them, not on the few that spread widest
-(``max_contacts`` = 1 still writes one). A geom over
-more than MAX_CELLS cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD``
-(with a printed warning unless ``m.opt.warn_overflow`` clears it).
+(``max_contacts`` = 1 still writes one). A box or a mesh gets one contact a triangle, as MuJoCo C
+gets one a prism: the prism's GJK/EPA answer where it was kept, else the deepest of the box's
+corners or the mesh's hull vertices under that triangle and B's deepest point under its plane
+(a face lying on a triangle is one contact, not one a corner). A geom over more than MAX_CELLS
+cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD`` (with a printed
+warning unless ``m.opt.warn_overflow`` clears it).
 
 This module owns the heightfield stage's kernels (built for one support mode by ``stage_kernels``),
 its install-time check (``check_model``), its per-Data buffers (``Buffers``) and its stage class,

@@ -19,6 +19,8 @@ from mujoco_warp._src.collision_core import geom_collision_pair
 from mujoco_warp._src.collision_gjk import ccd
 from mujoco_warp._src.types import GeomType
 
+from mjx_supportfield.geometry.box_prism import box_axes_part
+from mjx_supportfield.geometry.box_prism import box_distance
 from mjx_supportfield.geometry.mpr import MprResult
 from mjx_supportfield.geometry.mpr import MprSettings
 from mjx_supportfield.geometry.mpr import mpr_funcs
@@ -27,6 +29,10 @@ from mjx_supportfield.geometry.support import support_funcs
 from mjx_supportfield.stages.candidates import Candidates
 from mjx_supportfield.stages.candidates import add_candidate
 from mjx_supportfield.stages.candidates import add_tagged
+from mjx_supportfield.stages.candidates import TAG_DEEPEST
+from mjx_supportfield.stages.candidates import TAG_PRISM
+from mjx_supportfield.stages.candidates import TAG_VERTEX
+from mjx_supportfield.stages.candidates import triangle_tag
 from mjx_supportfield.stages.hfield_cells import Heightfield
 from mjx_supportfield.stages.hfield_cells import capsule_end
 from mjx_supportfield.stages.hfield_cells import cell_corners
@@ -255,6 +261,17 @@ def _through_border(hfield: Heightfield, r: int, c: int, normal: wp.vec3) -> boo
 
 
 @wp.func
+def _tag(hfield: Heightfield, b: Shape, r: int, c: int, t: int, source: int) -> int:
+  """Candidates.tag of B's candidate of triangle t of cell (r, c) from ``source``: a box's or a
+  mesh's, whose prisms run GJK/EPA as MuJoCo C's do and which get one contact a triangle as C's
+  get one a prism (a face on a triangle gives the triangle's contact, not one a corner); 0 for
+  other geoms."""
+  if uses_ccd(b, 0):
+    return triangle_tag(2 * (r * (hfield.ncol - 1) + c) + t, source)
+  return 0
+
+
+@wp.func
 def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: wp.ref[Candidates], code: int,
                     answer: wp.vec4, normal: wp.vec3, spacing: float, tol: float):
   """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to ``cands``,
@@ -282,7 +299,7 @@ def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: wp.ref
   elif not fold_answer_kept(hfield, dx, dy, r, c, job, p00, p01, p10, p11, normal,
                              1.0e-6 * (dx + dy + hfield.size[2])):
     return
-  add_candidate(cands, res.pos, normal, res.depth, spacing)
+  add_tagged(cands, res.pos, normal, res.depth, spacing, wp.where(job < 2, _tag(hfield, b, r, c, job, TAG_PRISM), 0))
 
 
 @wp.func
@@ -374,8 +391,11 @@ def window_funcs(mode: int) -> SimpleNamespace:
     while job < NJOB and (below_a or below_b):
       wanted = bool(False)
       if (job == 0 and below_a) or (job == 1 and below_b):
-        wanted = not _outside_walls(b, ms, p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), band,
-                                    3)
+        v1 = wp.where(job == 0, p10, p11)
+        v2 = wp.where(job == 0, p11, p01)
+        wanted = not _outside_walls(b, ms, p00, v1, v2, band, 3)
+        if wanted and b.gtype == GeomType.BOX:  # most of a box's remaining prisms are apart (box_prism.py)
+          wanted = not box_axes_part(p00, v1, v2, -hfield.size[3], b, band)
       elif job >= 2:
         k = (job - 2) // 3
         on_a = k == 0 or k == 2 or k == 3 or k == 5 or k == 7 or k == 8  # see _feature
@@ -393,6 +413,8 @@ def window_funcs(mode: int) -> SimpleNamespace:
           if wanted and wp.length(out) > 0.0:
             out = wp.normalize(out)
             wanted = wp.dot(q - support_world(b, ms, out), out) <= band
+          if wanted and b.gtype == GeomType.BOX:  # a point's MPR on a box finds what its distance says
+            wanted = box_distance(q, b) <= band
       if wanted:
         mask = mask | (1 << job)
       job += 1
@@ -468,9 +490,8 @@ def window_funcs(mode: int) -> SimpleNamespace:
           p = capsule_end(b, job % nlow - 1, n)
         depth = plane_depth(p, p00, wp.where(t == 0, p10, p11), wp.where(t == 0, p11, p01), n, band)
         if depth > 0.0:
-          # a mesh's hull vertices under a triangle are many points of one face on one plane
-          on_face = wp.where(item < ncorner and b.gtype == GeomType.MESH, 1, 0)
-          add_tagged(cands, p + 0.5 * depth * n, n, depth, spacing, on_face)
+          tag = _tag(hfield, b, r, c, t, wp.where(item < ncorner, TAG_VERTEX, TAG_DEEPEST))
+          add_tagged(cands, p + 0.5 * depth * n, n, depth, spacing, tag)
 
   return SimpleNamespace(_window=_window, _cell_jobs=_cell_jobs, _job_mpr=_job_mpr, _job_answer=_job_answer,
                          _plane_pass=_plane_pass)

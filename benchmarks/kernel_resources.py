@@ -67,8 +67,7 @@ def kernels() -> dict:
     "heightfield jobs": heightfield.stage_kernels(_MODE).jobs,
     "heightfield MPR": heightfield.stage_kernels(_MODE).mpr,
     "heightfield GJK/EPA": heightfield.stage_kernels(_MODE).ccd,
-    "heightfield contacts": heightfield.contacts_kernel(_MODE, False),
-    "heightfield contacts (GJK/EPA)": heightfield.contacts_kernel(_MODE, True),
+    "heightfield contacts": heightfield.contacts_kernel(_MODE),
     "heightfield closed form": heightfield.hfield_closed_form,
     "non-convex (SDF)": nonconvex.nonconvex_narrowphase(_MODE),
   }

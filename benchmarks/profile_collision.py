@@ -99,7 +99,7 @@ def _hfield_register_cap(cap):
   def capped(kernel):
     return _capped(kernel, cap)
 
-  heightfield.contacts_kernel = functools.lru_cache(maxsize=None)(lambda mode, ccd: capped(saved_contacts(mode, ccd)))
+  heightfield.contacts_kernel = functools.lru_cache(maxsize=None)(lambda mode: capped(saved_contacts(mode)))
   heightfield.hfield_closed_form = capped(saved_closed_form)
   try:
     yield

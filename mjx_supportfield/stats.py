@@ -26,8 +26,8 @@ class CollisionStats(dict):
     deep_pairs_reused: deep answers that kept the verdict of the pair's last check instead of a
       new one (deep_pairs.py), not counted in deep_pairs; the check ran on deep_pairs minus
       deep_pairs_unchecked.
-    hfield_ccd_as_mpr: prisms of boxes and meshes on a heightfield that found no row of GJK/EPA
-      memory left and ran MPR instead (a contact of the prism's deepest point, not EPA's).
+    hfield_ccd_as_mpr: prisms of boxes and meshes on a heightfield that found the MPR queue and
+      the beyond queue full and ran MPR instead (a contact of the prism's deepest point, not EPA's).
     path: "plugin", or "stock" where MuJoCo Warp's own collision stage ran
       (``Options.stock_for_analytic_models``, ``stock_pair_classes``); then ``pairs`` is its pair count, the per-world
       lists are empty and the plugin's other counters 0.
@@ -82,7 +82,7 @@ class CollisionStats(dict):
     spread = f" (most: {_worst(misses, worst)})" if any(misses) else ""
     lines.append(f"warm-start misses: {self['warm_start_misses']}{spread}")
     if self.get("hfield_ccd_as_mpr"):
-      lines.append(f"heightfield prisms without GJK/EPA memory (ran MPR): {self['hfield_ccd_as_mpr']}")
+      lines.append(f"heightfield prisms beyond both queues (ran MPR, not GJK/EPA): {self['hfield_ccd_as_mpr']}")
     if self.get("deep_pairs_unchecked"):
       lines.append(f"deep pairs beyond their world's rows of the check's queue: {self['deep_pairs_unchecked']} of "
                    f"{self['deep_pairs']} (they kept MPR's answer)")

@@ -44,11 +44,11 @@ def _call_sites(kernel, func: str) -> int:
   [
     (heightfield.stage_kernels(SUPPORT_REFINED).mpr, "mpr_refined", 1),
     (heightfield.stage_kernels(SUPPORT_REFINED).mpr, "_job_mpr", 1),
-    (heightfield.stage_kernels(SUPPORT_REFINED).jobs, "_cell_jobs", 1),
-    (heightfield.contacts_kernel(SUPPORT_REFINED, False), "_job_mpr", 1),
-    (heightfield.contacts_kernel(SUPPORT_REFINED, False), "_cell_jobs", 1),
-    (heightfield.contacts_kernel(SUPPORT_REFINED, True), "_job_mpr", 1),
-    (heightfield.contacts_kernel(SUPPORT_REFINED, True), "_cell_jobs", 1),
+    (heightfield.stage_kernels(SUPPORT_REFINED).jobs, "_cell_jobs", 2),  # and _queue_beyond's
+    (heightfield.stage_kernels(SUPPORT_REFINED).ccd, "job_ccd", 1),
+    (heightfield.contacts_kernel(SUPPORT_REFINED), "_job_mpr", 1),
+    (heightfield.contacts_kernel(SUPPORT_REFINED), "_cell_jobs", 1),
+    (heightfield.contacts_kernel(SUPPORT_REFINED), "job_ccd", 0),
     (nonconvex.nonconvex_narrowphase(SUPPORT_REFINED), "_point", 1),
     (nonconvex.nonconvex_narrowphase(SUPPORT_REFINED), "_segment_min", 1),
   ],
@@ -79,7 +79,7 @@ def _package_kernels() -> list:
   kernels += list(vars(deep_pairs.deep_kernels(SUPPORT_REFINED)).values())
   kernels += list(vars(multicontact_pass.pass_kernels(SUPPORT_REFINED)).values())
   kernels += list(vars(heightfield.stage_kernels(SUPPORT_REFINED)).values())
-  kernels += [heightfield.contacts_kernel(SUPPORT_REFINED, ccd) for ccd in (False, True)]
+  kernels.append(heightfield.contacts_kernel(SUPPORT_REFINED))
   return kernels
 
 

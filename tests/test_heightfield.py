@@ -404,20 +404,20 @@ def test_default_queue_holds_a_fine_grids_mprs(dropped):
   assert queue.shape[0] == sim.d.nworld * job_pairs * sf.Options().hfield_mprs_per_pair
 
 
-def test_prisms_without_epa_memory_are_counted(monkeypatch):
-  """Box prisms beyond the MPR queue that find no row of GJK/EPA memory left run MPR, and
-  stats(d) counts them (hfield_ccd_as_mpr), so that the fallback is never silent: two boxes, one
-  row of memory."""
+def test_prisms_beyond_both_queues_are_counted(monkeypatch):
+  """Box prisms beyond the MPR queue that find the beyond queue full too run MPR, and stats(d)
+  counts them (hfield_ccd_as_mpr), so that the fallback is never silent: two boxes, one place in
+  the beyond queue."""
   size = (0.0875, 0.0875, 0.02, 0.05)
   bodies = "".join(f'<body pos="{x} 0.02 0.028" euler="5 0 10"><freejoint/><geom type="box" size=".03 .02 .01"/></body>'
                    for x in (-0.04, 0.04))
-  monkeypatch.setattr(heightfield, "CCD_THREADS", 1)
+  monkeypatch.setattr(heightfield, "CCD_BEYOND", 1)
   sim = load(_hfield_xml(ROUGH, size, bodies))
   collider = sf.install(sim.mjm, sim.m, sf.Options(hfield_mprs_per_pair=1))
   sf.collision(sim.m, sim.d)
   stats = collider.stats(sim.d)
   assert stats["hfield_mprs_unqueued"] > 0 and stats["hfield_ccd_as_mpr"] > 0
-  assert "without GJK/EPA memory" in str(stats)
+  assert "beyond both queues" in str(stats)
   assert contacts(sim.d, 0).n > 0
 
 
@@ -437,8 +437,8 @@ def test_prism_contacts_need_nothing_of_the_epa_memory_before(dropped, monkeypat
   beyond the queue) are bit for bit the same with the memory filled with NaN and garbage, and
   with one row for all of hfield_ccd's prisms, run one after another, as with a row for each.
   Two prisms on one row at once would clobber each other only on a GPU, whose threads run side
-  by side; each thread's row is its own (its index in hfield_ccd, an atomic count beyond the
-  queue), and this checks the rest of that contract on the CPU."""
+  by side; each thread's row is its own (its index in hfield_ccd, which runs the prisms beyond the
+  queue too), and this checks the rest of that contract on the CPU."""
   qpos = dropped[0].d.qpos.numpy()[0]
   found = []
   for room in (4096, 1):

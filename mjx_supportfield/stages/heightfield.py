@@ -37,15 +37,16 @@ one thread each, so that a warp's lanes all run MPRs side by side (one thread a 
 or so one after another, beside lanes that had none), and hfield_ccd the queued GJK/EPA prisms of boxes and meshes on
 CCD_THREADS threads, each with a row of EPA memory; hfield_contacts, one thread a pair, adds the
 plane pass and the MPR answers in job order. MPRs that find the queue full
-(``Options.hfield_mprs_per_pair``) run in hfield_contacts instead: the same contacts, slower (its
-threads take rows of EPA memory left over by hfield_ccd; a prism that finds none left runs MPR,
-counted in the heightfield count buffer's COUNT_CCD_AS_MPR).
+(``Options.hfield_mprs_per_pair``) run in hfield_contacts instead: the same contacts, slower; but
+a box's or a mesh's prisms among them go to a second queue, the beyond queue (CCD_BEYOND places,
+written by hfield_jobs), whose GJK/EPA hfield_ccd runs too, so that hfield_contacts has no GJK/EPA
+to build (a prism that finds the beyond queue full as well runs MPR, counted in the heightfield
+count buffer's COUNT_CCD_AS_MPR).
 
 The kernels are built in parts of the stage's module (types.mode_module), which Warp builds side
 by side at first use (first_use.py), so that the first collision waits for the largest part, not
 for the sum: the light kernels, hfield_mpr, hfield_ccd (only for models with boxes or meshes on a
-heightfield) and hfield_contacts, whose GJK/EPA for the prisms beyond the queue is left out of
-models without boxes and meshes on a heightfield (legged robots' feet and shins).
+heightfield: GJK/EPA, the one part with MuJoCo Warp's collision_gjk) and hfield_contacts.
 
 Candidates closer than a duplicate radius merge (the deeper wins); the deepest and then the
 points farthest from those already chosen are written, up to ``max_contacts``, and after them
@@ -73,7 +74,6 @@ from types import SimpleNamespace
 import mujoco
 import numpy as np
 import warp as wp
-from mujoco_warp._src.collision_core import Geom
 from mujoco_warp._src.collision_core import contact_margin_gap
 from mujoco_warp._src.types import MJ_MAX_EPAFACES
 from mujoco_warp._src.types import MJ_MAX_EPAHORIZON
@@ -111,9 +111,10 @@ from mjx_supportfield.stages.hfield_window import (
   COUNT_JOBS,
   COUNT_UNQUEUED,
   COUNT_KIND,
-  COUNT_EPA_ROWS,
+  COUNT_BEYOND,
   COUNT_CCD_AS_MPR,
   CCD_THREADS,
+  CCD_BEYOND,
   PrismCcd,
   TerrainPair,
   terrain_pair,
@@ -131,8 +132,8 @@ from mjx_supportfield.stages.hfield_window import (
 # ill-conditioned (where EPA ends on the face moves by millimetres with the last bit of the input),
 # and a GPU compiler contracts the same code differently in each kernel that inlines it, so a
 # prism run in hfield_ccd and the same prism run beyond the queue in hfield_contacts gave different
-# contacts; without contraction every operation rounds as written, in each kernel and on the CPU
-# (whose code this option leaves as it was)
+# contacts (an MPR queued or beyond the queue runs in two kernels still); without contraction every
+# operation rounds as written, in each kernel and on the CPU (whose code this option leaves as it was)
 wp.set_module_options({**MODULE_OPTIONS, "fuse_fp": False})
 
 
@@ -146,6 +147,7 @@ def stage_kernels(mode: int) -> SimpleNamespace:
   _window = window._window
   _cell_jobs = window._cell_jobs
   _job_mpr = window._job_mpr
+  _queue_beyond = window._queue_beyond
 
   @wp.kernel(module=module)
   def hfield_jobs(
@@ -178,11 +180,13 @@ def stage_kernels(mode: int) -> SimpleNamespace:
     hfield_count_out: wp.array(dtype=int),
     hfield_pair_out: wp.array(dtype=TerrainPair),
     hfield_job_out: wp.array(dtype=wp.vec2i),
+    beyond_job_out: wp.array(dtype=wp.vec2i),
   ):
     """First of the heightfield kernels: each heightfield - convex pair's window of cells, and its
     MPR jobs (prisms and terrain points that pass the cheap tests), queued in cell order so that
     hfield_mpr runs them on dense warps. hfield_count_out counts the pairs, the jobs asked for,
-    and those that found the queue full (hfield_contacts runs them in the pair's thread)."""
+    and those that found the queue full (hfield_contacts runs them in the pair's thread, but a
+    box's or a mesh's prisms, which go to the beyond queue for hfield_ccd)."""
     tid = wp.tid()
     for cid in range(tid, npair_in[0], nthread):
       geoms = pair_in[cid]
@@ -210,6 +214,7 @@ def stage_kernels(mode: int) -> SimpleNamespace:
       kept_mask = vec_kept()
       nkept = int(0)
       n = int(0)  # jobs counted (first sweep), then queued
+      nprism = int(0)  # prisms counted
       # a sphere or a capsule within the grid has no MPR jobs: hfield_closed_form answers it
       for sweep in range(wp.where(tp.closed_form == 1, 0, nsweep)):
         cell = int(0)
@@ -228,10 +233,12 @@ def stage_kernels(mode: int) -> SimpleNamespace:
               nkept += 1
             else:
               n += set_bits(mask)
+              nprism += set_bits(mask & 3)
           cell += 1
         if sweep == 0:
           for i in range(nkept):
             n += set_bits(kept_mask[i])
+            nprism += set_bits(kept_mask[i] & 3)
           tp.job_total = n
           if n > 0:  # a pair without jobs asks for no place (atomics on one counter from every pair wait in line)
             tp.job_start = wp.atomic_add(hfield_count_out, COUNT_JOBS, n)
@@ -248,6 +255,10 @@ def stage_kernels(mode: int) -> SimpleNamespace:
         kind = COUNT_KIND + 2 * geom_type[geoms[1]]
         wp.atomic_add(hfield_count_out, kind, tp.nprism)
         wp.atomic_add(hfield_count_out, kind + 1, tp.job_count - tp.nprism)
+      if nprism > tp.nprism and uses_ccd(b, 0):  # a box's or a mesh's prisms beyond the MPR queue
+        tp.beyond_start = wp.atomic_add(hfield_count_out, COUNT_BEYOND, nprism - tp.nprism)
+        tp.beyond_count = wp.max(0, wp.min(nprism - tp.nprism, beyond_job_out.shape[0] - tp.beyond_start))
+        _queue_beyond(hfield, b, ms, tp, slot, hfield_job_out, beyond_job_out)
       hfield_pair_out[slot] = tp
 
   @wp.kernel(module=module)
@@ -357,51 +368,67 @@ def stage_kernels(mode: int) -> SimpleNamespace:
     # In:
     pair_in: wp.array(dtype=wp.vec2i),
     pair_worldid_in: wp.array(dtype=int),
+    hfield_count_in: wp.array(dtype=int),
     hfield_pair_in: wp.array(dtype=TerrainPair),
     hfield_job_in: wp.array(dtype=wp.vec2i),
     kind_end_in: wp.array(dtype=int),
     order_in: wp.array(dtype=int),
+    beyond_job_in: wp.array(dtype=wp.vec2i),
     ccd_in: PrismCcd,
     nthread: int,
     # Out:
     overflow_out: wp.array(dtype=int),
     answer_out: wp.array(dtype=wp.vec4),
     normal_out: wp.array(dtype=wp.vec3),
+    beyond_answer_out: wp.array(dtype=wp.vec4),
+    beyond_normal_out: wp.array(dtype=wp.vec3),
   ):
-    """The queued prisms of boxes and meshes by GJK/EPA (job_ccd), one thread a job of those two
-    kinds in hfield_order's order, each thread on its own row of EPA memory (nthread rows)."""
+    """The prisms of boxes and meshes by GJK/EPA (job_ccd): the queued ones of those two kinds in
+    hfield_order's order, then those of the beyond queue, one thread a job, each thread on its own
+    row of EPA memory (nthread rows). One call of job_ccd: each call site is a copy of GJK/EPA."""
     tid = wp.tid()
-    for t in range(2):
-      kind = wp.where(t == 0, 2 * int(GeomType.BOX), 2 * int(GeomType.MESH))  # their prisms
-      for i in range(kind_end_in[kind - 1] + tid, kind_end_in[kind], nthread):
-        j = order_in[i]
+    box = kind_end_in[2 * int(GeomType.BOX)] - kind_end_in[2 * int(GeomType.BOX) - 1]  # prisms queued
+    queued = box + kind_end_in[2 * int(GeomType.MESH)] - kind_end_in[2 * int(GeomType.MESH) - 1]
+    for i in range(tid, queued + wp.min(hfield_count_in[COUNT_BEYOND], beyond_job_in.shape[0]), nthread):
+      j = i - queued  # a place in the beyond queue, or in the MPR queue:
+      if i < box:
+        j = order_in[kind_end_in[2 * int(GeomType.BOX) - 1] + i]
+      elif i < queued:
+        j = order_in[kind_end_in[2 * int(GeomType.MESH) - 1] + i - box]
+      job = wp.vec2i()
+      if i < queued:
         job = hfield_job_in[j]
-        tp = hfield_pair_in[job[0]]
-        worldid = pair_worldid_in[tp.cid]
-        geoms = pair_in[tp.cid]
-        hf = geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
-        bgeom = ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
-        hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
-        answer, normal = job_ccd(hfield, bgeom, geom_type[geoms[1]], tp, job[1], ccd_in, tid, worldid, overflow_out)
+      else:
+        job = beyond_job_in[j]
+      tp = hfield_pair_in[job[0]]
+      worldid = pair_worldid_in[tp.cid]
+      geoms = pair_in[tp.cid]
+      hf = geom_dataid[worldid % geom_dataid.shape[0], geoms[0]]
+      bgeom = ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
+      hfield = heightfield(hfield_size, hfield_nrow, hfield_ncol, hfield_adr, hfield_data, hf)
+      answer, normal = job_ccd(hfield, bgeom, geom_type[geoms[1]], tp, job[1], ccd_in, tid, worldid, overflow_out)
+      if i < queued:
         answer_out[j] = answer
         normal_out[j] = normal
+      else:
+        beyond_answer_out[j] = answer
+        beyond_normal_out[j] = normal
 
   return SimpleNamespace(jobs=hfield_jobs, kind_start=hfield_kind_start, order=hfield_order, mpr=hfield_mpr,
                          ccd=hfield_ccd)
 
 
 @functools.lru_cache(maxsize=None)
-def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
-  """hfield_contacts for support mode ``mode``, in a module of its own; with ``ccd`` (a model with
-  boxes or meshes on a heightfield) it runs their prisms beyond the queue by GJK/EPA, without
-  it that code is left out: GJK/EPA doubles the module's build time at first use."""
+def contacts_kernel(mode: int) -> wp.Kernel:
+  """hfield_contacts for support mode ``mode``, in a module of its own, without GJK/EPA (whose code
+  would double the module's build time at first use): a box's or a mesh's prisms beyond the MPR
+  queue take hfield_ccd's answers from the beyond queue."""
   window = window_funcs(mode)
   _cell_jobs = window._cell_jobs
   _job_mpr = window._job_mpr
-  _job_answer = window._job_answer
   _plane_pass = window._plane_pass
 
-  @wp.kernel(module=mode_module(__name__, mode, "contacts_ccd" if ccd else "contacts"))
+  @wp.kernel(module=mode_module(__name__, mode, "contacts"))
   def hfield_contacts(
     # Model:
     geom_type: wp.array(dtype=int),
@@ -431,7 +458,8 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
     hfield_job_in: wp.array(dtype=wp.vec2i),
     answer_in: wp.array(dtype=wp.vec4),
     normal_in: wp.array(dtype=wp.vec3),
-    ccd_in: PrismCcd,
+    beyond_answer_in: wp.array(dtype=wp.vec4),
+    beyond_normal_in: wp.array(dtype=wp.vec3),
     nthread: int,
     quota: ContactQuota,
     # Data out:
@@ -445,7 +473,6 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
     contacts and its MPR answers in job order (running those the queue had no room for), merged
     (candidates.py) and written (heightfield first, as MuJoCo orders the pair)."""
     tid = wp.tid()
-    row = int(-1)  # this thread's row of EPA memory, taken when it first runs GJK/EPA beyond the queue
     for slot in range(tid, wp.min(hfield_count_out[COUNT_PAIRS], hfield_pair_in.shape[0]), nthread):
       tp = hfield_pair_in[slot]
       cid = tp.cid
@@ -473,12 +500,7 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
       if tp.job_count > 0:
         code = hfield_job_in[tp.job_start + tp.job_count - 1][1] + 1
       left = tp.job_total - tp.job_count
-      bgeom = Geom()
-      if wp.static(ccd):
-        if left > 0 and uses_ccd(b, 0):
-          bgeom = ccd_geom(ccd_in, geom_type, geom_dataid, geom_size, geom_xpos_in, geom_xmat_in, geoms, worldid)
-          if row < 0:
-            row = wp.atomic_add(hfield_count_out, COUNT_EPA_ROWS, 1)
+      beyond = int(0)  # the pair's prisms met so far that hfield_ccd ran from the beyond queue
       ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
       while left > 0 and code < ncell * NJOB:
         cell = code // NJOB
@@ -488,10 +510,16 @@ def contacts_kernel(mode: int, ccd: bool) -> wp.Kernel:
         while mask != 0:
           if (mask & 1) == 1:
             answer, normal = wp.vec4(), wp.vec3()
-            if wp.static(ccd):
-              answer, normal = _job_answer(hfield, b, ms, tp, cell * NJOB + job, mpr_options, bgeom, ccd_in, row,
-                                           worldid, overflow_out, hfield_count_out)
-            else:  # no box or mesh on a heightfield: MPR's, as _job_answer would give
+            mpr = bool(True)
+            if uses_ccd(b, cell * NJOB + job):
+              if beyond < tp.beyond_count:
+                answer = beyond_answer_in[tp.beyond_start + beyond]
+                normal = beyond_normal_in[tp.beyond_start + beyond]
+                mpr = False
+              else:  # the beyond queue was full too
+                wp.atomic_add(hfield_count_out, COUNT_CCD_AS_MPR, 1)
+              beyond += 1
+            if mpr:  # one call: each call site is a copy of MPR
               answer, normal = _job_mpr(hfield, b, ms, tp, cell * NJOB + job, mpr_options)
             add_job_answer(hfield, tp, b, cands, cell * NJOB + job, answer, normal, spacing, mpr_options.tolerance)
             left -= 1
@@ -526,13 +554,16 @@ def check_model(mjm: mujoco.MjModel) -> None:
 class Buffers:
   """The heightfield stage's per-Data buffers."""
 
-  count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind, EPA rows taken, ... (COUNT_*)
+  count: wp.array  # heightfield pairs, MPRs, those beyond the queue, per kind, prisms beyond it, ... (COUNT_*)
   pair: wp.array  # (pairs) TerrainPair
   job: wp.array  # (MPRs) the MPR queue: (index into pair, cell * NJOB + job)
   kind_next: wp.array  # (NKIND) next place of each kind of job in order
   order: wp.array  # (MPRs) the queue's jobs grouped by kind, the order hfield_mpr runs them in
   answer: wp.array  # (MPRs) each MPR's point and depth
   normal: wp.array  # (MPRs) and normal
+  beyond_job: wp.array  # (CCD_BEYOND, 1 without GJK/EPA) the beyond queue: box and mesh prisms beyond the MPR queue
+  beyond_answer: wp.array  # their point and depth (hfield_ccd's)
+  beyond_normal: wp.array  # and normal
   ccd_rows: int  # rows of EPA memory (PrismCcd): hfield_ccd's threads (1 without GJK/EPA)
   epa: tuple  # (vert, vert_index, face, face_pr, face_norm2, horizon), ccd_rows rows each
 
@@ -573,6 +604,7 @@ class Heightfield:
     npair = max(1, nworld * self.pairs_per_world)
     nmpr = max(1, nworld * self.job_pairs_per_world * self.options.hfield_mprs_per_pair)
     rows = min(max(nmpr, npair), CCD_THREADS) if self.has_pairs and self.ccd else 1
+    nbeyond = CCD_BEYOND if self.has_pairs and self.ccd else 1
     # sized as MuJoCo Warp's collision_convex sizes its EPA memory
     nvert = 10 + 2 * self.ccd_iterations
     nface = 6 + MJ_MAX_EPAFACES * self.ccd_iterations
@@ -588,6 +620,9 @@ class Heightfield:
       job=wp.zeros(nmpr, dtype=wp.vec2i),
       answer=wp.zeros(nmpr, dtype=wp.vec4),
       normal=wp.zeros(nmpr, dtype=wp.vec3),
+      beyond_job=wp.zeros(nbeyond, dtype=wp.vec2i),
+      beyond_answer=wp.zeros(nbeyond, dtype=wp.vec4),
+      beyond_normal=wp.zeros(nbeyond, dtype=wp.vec3),
     )
 
   def prism_ccd(self, m, b: Buffers) -> PrismCcd:
@@ -620,7 +655,7 @@ class Heightfield:
       inputs=[m.geom_type, m.geom_dataid, m.geom_size, m.geom_margin, m.geom_gap] + hfield
       + [m.pair_margin, m.pair_gap, d.geom_xpos, d.geom_xmat, self.mesh_support, pairs.npair, pairs.pair,
          pairs.pairid, pairs.pair_worldid, 2, nthread],
-      outputs=[d.overflow, b.count, b.pair, b.job],
+      outputs=[d.overflow, b.count, b.pair, b.job, b.beyond_job],
     )
     nthread_pair = max(1, min(b.pair.shape[0], GRID_THREADS))
     wp.launch(kernels.kind_start, dim=1, inputs=[b.count], outputs=[b.kind_next])
@@ -645,18 +680,18 @@ class Heightfield:
         kernels.ccd,
         dim=b.ccd_rows,
         inputs=[m.geom_type, m.geom_dataid, m.geom_size] + hfield
-        + [d.geom_xpos, d.geom_xmat, pairs.pair, pairs.pair_worldid, b.pair, b.job, b.kind_next, b.order, ccd_in,
-           b.ccd_rows],
-        outputs=[d.overflow, b.answer, b.normal],
+        + [d.geom_xpos, d.geom_xmat, pairs.pair, pairs.pair_worldid, b.count, b.pair, b.job, b.kind_next, b.order,
+           b.beyond_job, ccd_in, b.ccd_rows],
+        outputs=[d.overflow, b.answer, b.normal, b.beyond_answer, b.beyond_normal],
       )
     wp.launch(
-      contacts_kernel(self.support_mode, self.ccd),
+      contacts_kernel(self.support_mode),
       dim=nthread_pair,
       inputs=[
         m.geom_type, contact_mixing(m), m.geom_dataid, m.geom_size, m.geom_aabb] + hfield + [
         warn, d.geom_xpos, d.geom_xmat, d.naconmax, self.mesh_support, settings_of(opt),
         opt.max_contacts_per_pair, opt.mc_tolerance, pairs.pair, pairs.pairid, pairs.pair_worldid, b.pair, b.job,
-        b.answer, b.normal, ccd_in, nthread_pair, quota,
+        b.answer, b.normal, b.beyond_answer, b.beyond_normal, nthread_pair, quota,
       ],
       outputs=[d.overflow, b.count] + contact_outputs(d),
     )

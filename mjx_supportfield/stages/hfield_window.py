@@ -72,14 +72,17 @@ vec_kept = wp.types.vector(length=KEPT_CELLS, dtype=int)
 # warp's lanes take the same branches of the support functions
 NKIND = 2 * NGEOMTYPE
 COUNT_PAIRS, COUNT_JOBS, COUNT_UNQUEUED, COUNT_KIND = 0, 1, 2, 3  # hfield_count: then NKIND counts
-COUNT_EPA_ROWS = COUNT_KIND + NKIND  # rows of EPA memory taken by hfield_contacts' threads
-COUNT_CCD_AS_MPR = COUNT_EPA_ROWS + 1  # prisms that found no EPA memory left and ran MPR instead
+COUNT_BEYOND = COUNT_KIND + NKIND  # box and mesh prisms beyond the MPR queue (places asked for in the beyond queue)
+COUNT_CCD_AS_MPR = COUNT_BEYOND + 1  # prisms that found the beyond queue full too and ran MPR instead
 # rows of EPA memory (each a GJK/EPA run's scratch, about 5 kB at MuJoCo's default ccd_iterations):
-# hfield_ccd's threads, then those of hfield_contacts' threads that run GJK/EPA beyond the queue.
-# GJK/EPA at its register cap fits 16 warps on a streaming multiprocessor: 65536 threads fill a
-# GPU of over a hundred of them once (8192 left three quarters of each idle, each thread running
-# dozens of prisms one after another), for about 330 MB
+# hfield_ccd's threads. GJK/EPA at its register cap fits 16 warps on a streaming multiprocessor:
+# 65536 threads fill a GPU of over a hundred of them once (8192 left three quarters of each idle,
+# each thread running dozens of prisms one after another), for about 330 MB
 CCD_THREADS = 65536
+# places in the beyond queue: box and mesh prisms that find the MPR queue full go there, for
+# hfield_ccd, so that hfield_contacts runs no GJK/EPA (whose code would double its build time at
+# first use); 36 bytes each, however small Options.hfield_mprs_per_pair makes the MPR queue
+CCD_BEYOND = 65536
 
 
 @wp.struct
@@ -127,6 +130,8 @@ class TerrainPair:
   job_start: int  # the first job_count of them, in order, are jobs job_start ... of the MPR queue
   job_count: int
   nprism: int  # how many of those are prisms (hfield_order groups them apart from the points)
+  beyond_start: int  # a box's or a mesh's prisms beyond the MPR queue: the first beyond_count of them,
+  beyond_count: int  # in order, are places beyond_start ... of the beyond queue (hfield_ccd runs them)
   closed_form: int  # 1: a sphere or a capsule within the grid, hfield_closed_form's (no MPR job)
 
 
@@ -331,7 +336,7 @@ def queue_cell(job_out: wp.array(dtype=wp.vec2i), slot: int, tp: TerrainPair, ce
 @functools.lru_cache(maxsize=None)
 def window_funcs(mode: int) -> SimpleNamespace:
   """The window's and the jobs' device functions on the support functions of support mode
-  ``mode`` (support_funcs, mpr_funcs): ``_window``, ``_cell_jobs``, ``_job_mpr``, ``_job_answer``
+  ``mode`` (support_funcs, mpr_funcs): ``_window``, ``_cell_jobs``, ``_job_mpr``, ``_queue_beyond``
   and ``_plane_pass``."""
   support_world = support_funcs(mode).support_world
   mpr_refined = mpr_funcs(mode).mpr_refined
@@ -348,6 +353,8 @@ def window_funcs(mode: int) -> SimpleNamespace:
     tp.job_start = 0
     tp.job_count = 0
     tp.nprism = 0
+    tp.beyond_start = 0
+    tp.beyond_count = 0
     tp.closed_form = 0
     for k in range(3):
       tp.hi[k] = support_world(b, ms, unit_axis(k))[k] + band
@@ -439,17 +446,25 @@ def window_funcs(mode: int) -> SimpleNamespace:
     return wp.vec4(pos[0], pos[1], pos[2], depth), res.normal
 
   @wp.func
-  def _job_answer(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, code: int,
-                  mpr_options: MprSettings, bgeom: Geom, ccd_in: PrismCcd, row: int, worldid: int,
-                  overflow_out: wp.array(dtype=int), count_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
-    """MPR job ``code``'s answer (_job_mpr), or GJK/EPA's for a prism against a box or a mesh on EPA
-    memory ``row`` (MPR's when no row was left: counted in COUNT_CCD_AS_MPR)."""
-    if uses_ccd(b, code):
-      if row >= 0 and row < ccd_in.vert.shape[0]:
-        return job_ccd(hfield, bgeom, b.gtype, tp, code, ccd_in, row, worldid,
-                        overflow_out)
-      wp.atomic_add(count_out, COUNT_CCD_AS_MPR, 1)
-    return _job_mpr(hfield, b, ms, tp, code, mpr_options)
+  def _queue_beyond(hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair, slot: int,
+                    job_in: wp.array(dtype=wp.vec2i), beyond_out: wp.array(dtype=wp.vec2i)):
+    """Queues the first tp.beyond_count prisms of the pair (in slot) beyond the MPR queue, in order,
+    as places tp.beyond_start ... of the beyond queue: the prisms hfield_contacts meets, in the same
+    order, when it walks the jobs the MPR queue had no room for."""
+    code = int(0)  # after the pair's last queued job (the queue holds its first job_count jobs, in order)
+    if tp.job_count > 0:
+      code = job_in[tp.job_start + tp.job_count - 1][1] + 1
+    ncell = (tp.window[1] - tp.window[0] + 1) * (tp.window[3] - tp.window[2] + 1)
+    k = int(0)
+    while k < tp.beyond_count and code < ncell * NJOB:
+      cell = code // NJOB
+      mask = _cell_jobs(hfield, b, ms, tp, cell)
+      mask = (mask >> (code % NJOB)) << (code % NJOB)  # the cell's jobs from code on
+      for job in range(2):  # its prisms
+        if ((mask >> job) & 1) == 1 and k < tp.beyond_count:
+          beyond_out[tp.beyond_start + k] = wp.vec2i(slot, cell * NJOB + job)
+          k += 1
+      code = (cell + 1) * NJOB
 
   @wp.func
   def _plane_pass(cands: wp.ref[Candidates], hfield: Heightfield, b: Shape, ms: MeshSupport, tp: TerrainPair,
@@ -493,5 +508,5 @@ def window_funcs(mode: int) -> SimpleNamespace:
           tag = _tag(hfield, b, r, c, t, wp.where(item < ncorner, TAG_VERTEX, TAG_DEEPEST))
           add_tagged(cands, p + 0.5 * depth * n, n, depth, spacing, tag)
 
-  return SimpleNamespace(_window=_window, _cell_jobs=_cell_jobs, _job_mpr=_job_mpr, _job_answer=_job_answer,
+  return SimpleNamespace(_window=_window, _cell_jobs=_cell_jobs, _job_mpr=_job_mpr, _queue_beyond=_queue_beyond,
                          _plane_pass=_plane_pass)

@@ -54,9 +54,10 @@ DEFAULT_MODELS = [os.path.join(HERE, "scenes", s) for s in ("pile_32_128.xml", "
 
 
 def load_modules(paths: list[str]) -> list:
-  """Steps each model on the CPU with the plugin (2 worlds, 3 steps) and returns the plugin's
-  Warp modules now loaded. Install's disk cache starts empty, so that install's own kernels
-  (support fields, SDFs) run and load too."""
+  """Steps each model on the CPU with the plugin (2 worlds, 3 steps, then a masked reset: RL
+  frameworks reset some worlds each step) and returns the plugin's Warp modules now loaded.
+  Install's disk cache starts empty, so that install's own kernels (support fields, SDFs) run and
+  load too."""
   from warp._src.context import user_modules
 
   os.environ["MJX_SUPPORTFIELD_CACHE"] = tempfile.mkdtemp(prefix="prebuild_install_")
@@ -74,6 +75,7 @@ def load_modules(paths: list[str]) -> list:
       d = mjw.make_data(mjm, nworld=2, nconmax=512, njmax=4096)
       for _ in range(3):
         mjw.step(m, d)
+      mjw.reset_data(m, d, reset=wp.array([True, False], dtype=bool))
       print(f"{os.path.relpath(path, ROOT)}: stepped in {time.perf_counter() - t:.0f} s", flush=True)
   return [m for m in list(user_modules.values()) if m.execs and is_plugin_module(m)]
 

@@ -1,6 +1,6 @@
 """Per-kernel GPU time of the collision stage, plugin and stock (Warp's CUDA activity timing).
 
-  python benchmarks/profile_collision.py SCENE.xml [--nworld 8192] [--settle 200] [--variants V,V,...]
+  python benchmarks/profile_collision.py SCENE.xml|MODEL.mjb [--nworld 8192] [--settle 200] [--variants V,V,...]
                                         [--steps N]
 
 Without ``--steps``: collision called ``--repeats`` times on one frozen state. That flatters the
@@ -133,7 +133,9 @@ def main():
   p.add_argument("--no-stock", action="store_true", help="profile only the plugin variants")
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
-  mjm = mujoco.MjModel.from_xml_path(args.model)
+  # a compiled model (.mjb) for scenes built by code, such as mjlab's tasks (mujoco.mj_saveModel)
+  mjm = (mujoco.MjModel.from_binary_path(args.model) if args.model.endswith(".mjb")
+         else mujoco.MjModel.from_xml_path(args.model))
   mjd = settled_state(mjm, args.settle, args.keyframe)
   ncon = int(1.5 * mjd.ncon) + 16
   for impl in ([] if args.no_stock else ["stock"]) + args.variants.split(","):

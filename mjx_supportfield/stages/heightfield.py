@@ -34,9 +34,9 @@ cheap tests (B above the triangle's plane, outside a prism's side wall, a point 
 one support query; for a box, a point outside it, or a prism parted from it by one of the box's
 axes or an edge pair's: geometry/box_prism.py) and queues them; hfield_mpr runs the queued MPRs,
 one thread each, so that a warp's lanes all run MPRs side by side (one thread a pair ran its ten
-or so one after another, beside lanes that had none), and hfield_ccd the queued GJK/EPA prisms of boxes and meshes on
-CCD_THREADS threads, each with a row of EPA memory; hfield_contacts, one thread a pair, adds the
-plane pass and the MPR answers in job order. MPRs that find the queue full
+or so one after another, beside lanes that had none), and hfield_ccd the queued GJK/EPA prisms of
+boxes and meshes on CCD_THREADS threads, each with a row of EPA memory; hfield_contacts, one
+thread a pair, adds the plane pass and the MPR answers in job order. MPRs that find the queue full
 (``Options.hfield_mprs_per_pair``) run in hfield_contacts instead: the same contacts, slower; but
 a box's or a mesh's prisms among them go to a second queue, the beyond queue (CCD_BEYOND places,
 written by hfield_jobs), whose GJK/EPA hfield_ccd runs too, so that hfield_contacts has no GJK/EPA

@@ -29,7 +29,6 @@ from mjx_supportfield.geometry.support_field import too_large
 from mjx_supportfield.launch import contact_quota
 from mjx_supportfield.launch import contact_sort
 from mjx_supportfield.launch import first_use
-from mjx_supportfield.options import NXN_MAX_PAIRS
 from mjx_supportfield.options import Options
 from mjx_supportfield.stages import broadphase
 from mjx_supportfield.stages import deep_pairs
@@ -142,7 +141,7 @@ class Collider:
       sensor = pairids[:, 1] >= 0
       # no world can have more pairs than the model allows after its static filters
       max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
-      nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= NXN_MAX_PAIRS)
+      nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= broadphase.nxn_pair_limit(mjm, pairs))
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       # the pair classes routed to MuJoCo Warp's narrow phase (Options.stock_pair_classes), by the
       # table the broad phase routes them with

@@ -47,7 +47,9 @@ class Options:
       exact answer. "field": the table's 4-cell lookup only (approximate, fastest). "exact": a scan
       of every hull vertex (slow on large hulls; a reference).
     broadphase: "auto" (default): nxn up to NXN_MAX_PAIRS (16384) geom pairs after MuJoCo's static
-      filters, sweep-and-prune beyond. "nxn": every such pair, one thread per world and pair.
+      filters, times the ratio of the paired geoms to the moving ones (a terrain's static tiles and
+      boxes raise it: broadphase.nxn_pair_limit), sweep-and-prune beyond. "nxn": every such pair,
+      one thread per world and pair.
       "sap": sweep-and-prune, which scales with the geoms rather than their pairs. Force one only
       to compare them.
     max_collision_pairs: broad-phase pairs kept per world. Default 4096, integer 1 to 16777216

@@ -8,6 +8,7 @@ from mujoco_warp._src.types import GeomType
 from mujoco_warp._src.types import OverflowType
 
 import mjx_supportfield as sf
+from mjx_supportfield.stages import broadphase
 from mjx_supportfield.stages import routing as nph
 from conftest import bitwise_repeatable
 from conftest import contacts
@@ -162,14 +163,36 @@ def test_pairs_against_brute_force(scene, broadphase, sap_axis):
 
 
 def test_auto_broadphase_follows_the_pair_count(monkeypatch):
-  """"auto" takes nxn up to NXN_MAX_PAIRS statically kept pairs and sweep-and-prune beyond."""
+  """"auto" takes nxn up to NXN_MAX_PAIRS statically kept pairs (times the share of moving
+  geoms: nearly all here) and sweep-and-prune beyond."""
   sim = load("primitives_plane", nworld=1)
   npair = len(sim.m.nxn_geom_pair_filtered.numpy())
   assert sf.install(sim.mjm, sim.m).broad.nxn
   sf.uninstall(sim.m)
-  monkeypatch.setattr(sf.collider, "NXN_MAX_PAIRS", npair - 1)
+  monkeypatch.setattr(broadphase, "NXN_MAX_PAIRS", npair // 2)
   assert not sf.install(sim.mjm, sim.m).broad.nxn
   sf.uninstall(sim.m)
+
+
+def test_auto_broadphase_counts_static_geoms_apart(monkeypatch):
+  """Static geoms (a terrain's stair boxes) raise "auto"'s nxn limit by the ratio of all the
+  paired geoms to the moving ones: the sweep walks the static ones every step, nxn only their
+  pairs with moving geoms."""
+  boxes = "".join(f'<geom type="box" size=".1 .1 .1" pos="{0.3 * i} 0 0"/>' for i in range(40))
+  mjm = mujoco.MjModel.from_xml_string(
+    f'<mujoco><worldbody>{boxes}<body pos="0 0 1"><freejoint/><geom size=".1"/></body>'
+    '<body pos="1 0 1"><freejoint/><geom size=".1"/></body></worldbody></mujoco>')
+  pairs = np.asarray(mjw.put_model(mjm).nxn_geom_pair_filtered.numpy()).reshape(-1, 2)
+  assert len(pairs) == 81  # each sphere with each box, and the two spheres
+  monkeypatch.setattr(broadphase, "NXN_MAX_PAIRS", 10)
+  assert broadphase.nxn_pair_limit(mjm, pairs) == 10 * 42 // 2
+  m = mjw.put_model(mjm)
+  assert sf.install(mjm, m).broad.nxn
+  sf.uninstall(m)
+  bodies = "".join(f'<body pos="{0.3 * i} 0 0"><freejoint/><geom type="box" size=".1 .1 .1"/></body>' for i in range(14))
+  free = mujoco.MjModel.from_xml_string(f"<mujoco><worldbody>{bodies}</worldbody></mujoco>")
+  pairs = np.asarray(mjw.put_model(free).nxn_geom_pair_filtered.numpy()).reshape(-1, 2)
+  assert broadphase.nxn_pair_limit(free, pairs) == 10  # every geom moves: the limit as it is
 
 
 @pytest.fixture(scope="module")

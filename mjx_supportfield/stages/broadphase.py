@@ -27,6 +27,7 @@ the sweep, then the compacted pair list and the narrow-phase queues.
 import dataclasses
 import functools
 
+import numpy as np
 import warp as wp
 from mujoco_warp._src.collision_core import CollisionContext
 from mujoco_warp._src.collision_driver import _broadphase_filter
@@ -36,6 +37,7 @@ from mujoco_warp._src.types import OverflowType
 from mujoco_warp._src.types import SleepState
 
 from mjx_supportfield.launch import first_use
+from mjx_supportfield.options import NXN_MAX_PAIRS
 from mjx_supportfield.stages.aabb import update_aabbs
 from mjx_supportfield.stages.routing import NGEOMTYPE
 from mjx_supportfield.stages.routing import PairQueues
@@ -541,6 +543,20 @@ def _filling_threads(kernel, device) -> int:
     block, grid = wp.get_suggested_block_size(kernel, device)
     _FILLING_THREADS[key] = block * grid
   return _FILLING_THREADS[key]
+
+
+def nxn_pair_limit(mjm, pairs: np.ndarray) -> int:
+  """How many pairs left by MuJoCo's static filters (``pairs``, (npair, 2) geom ids) ``auto``
+  takes nxn up to: NXN_MAX_PAIRS, times the ratio of the geoms in those pairs to those of them
+  that move. The sweep sorts and walks every geom each step, the static ones too, which pair with
+  nothing static (a terrain's tiles and stair boxes: mjlab's rough tasks have 554 of them beside
+  one robot's 30 geoms); nxn's work is the pairs alone, and the static filters have left the
+  static-static ones out already."""
+  geoms = np.unique(pairs)
+  if len(geoms) == 0:
+    return NXN_MAX_PAIRS
+  static = np.asarray(mjm.body_weldid)[np.asarray(mjm.geom_bodyid)[geoms]] == 0  # welded to the world
+  return int(NXN_MAX_PAIRS * len(geoms) / max(1, int((~static).sum())))
 
 
 def pair_major_by_default(cuda: bool, nxn: bool, npair: int) -> bool:

@@ -2,7 +2,7 @@
 
   python benchmarks/soak.py [--scene benchmarks/scenes/pile_256_128.xml] [--nworld 1024]
                             [--steps 100000] [--chunk 500] [--minutes M] [--json OUT]
-                            [--save CK.npz [--save-every N]] [--resume CK.npz]
+                            [--save CK.npz [--save-every N]] [--resume CK.npz] [--save-failing F.npz]
 
 The worlds start from the scene's initial state (its keyframe, if it has one; a pile's bodies
 dropped from rest), each with a small random velocity so they differ. Steps run ``chunk`` at a
@@ -38,6 +38,11 @@ energy, so the energy bound is reported but not judged while they are on.
 The run stops at ``steps`` (in all, counted over every segment) or before a chunk that would end
 more than ``minutes`` after the script started (setup and compiling included; judged by the
 slowest chunk so far, the first chunk always runs), and the JSON says which.
+
+A failure to replay: ``--save-failing F.npz`` keeps the state of the last two chunk starts (with
+the controls the driving set) and writes the older one when a chunk first fails, the checkpoint's
+format plus ``ctrl``, ``start_step`` and ``failed_at``: a geom stuck in the ground fails at the
+second of two chunk ends, and the chunk before shows it going in.
 
 Segments. A run too long for one sitting runs as several segments: ``--save CK.npz`` writes a
 checkpoint when the segment stops (and every ``--save-every`` chunks, written atomically), and
@@ -79,6 +84,7 @@ from scenelib import real_scenes  # noqa: E402
 
 from mjx_supportfield.tools import bench  # noqa: E402
 from scenelib.checkpoint import FORMAT  # noqa: E402
+from scenelib.checkpoint import STATE  # noqa: E402
 from scenelib.checkpoint import WARMSTART  # noqa: E402
 from scenelib.checkpoint import CheckpointError  # noqa: E402
 from scenelib.checkpoint import check_resume  # noqa: E402
@@ -86,6 +92,7 @@ from scenelib.checkpoint import load_checkpoint  # noqa: E402
 from scenelib.checkpoint import read_state  # noqa: E402
 from scenelib.checkpoint import resume_start  # noqa: E402
 from scenelib.checkpoint import save_checkpoint  # noqa: E402
+from scenelib.checkpoint import save_state  # noqa: E402
 from scenelib.checkpoint import scene_sha256  # noqa: E402
 from scenelib.checkpoint import write_state  # noqa: E402
 from mjx_supportfield.driver import get_collider  # noqa: E402
@@ -332,6 +339,9 @@ def parse_args():
   p.add_argument("--save-every", type=int, default=0, help="also write it every N chunks (0: only at the end)")
   p.add_argument("--save-max-mib", type=float, default=15.0,
                  help="leave qacc_warmstart out if the state arrays would pass this size (uncompressed)")
+  p.add_argument("--save-failing", default=None,
+                 help="write here the state and controls at the start of the chunk before the first failing "
+                      "one (a geom stuck in the ground fails at the second of two chunk ends), to replay it")
   p.add_argument("--resume", default=None, help="continue the soak saved in this checkpoint")
   p.add_argument("--ctrl-noise", type=float, default=0.0,
                  help="each chunk, controls = the keyframe's + uniform noise of this amplitude "
@@ -406,6 +416,8 @@ def main():
   t0 = time.perf_counter()
   reason, slowest, saved = "steps", 0.0, None
   before = set()  # (world, geom) in the ground at the last chunk end (not carried over a resume)
+  starts = []  # (step, state and controls) at the last two chunks' starts, for --save-failing
+  failing_saved = False
   while hist["steps"] < args.steps:
     elapsed = time.perf_counter() - t0
     if args.minutes and time.perf_counter() - start + slowest > 60 * args.minutes:
@@ -413,6 +425,8 @@ def main():
       break
     n = min(args.chunk, args.steps - hist["steps"])
     episodes.drive(d)
+    if args.save_failing:
+      starts = (starts + [(hist["steps"], read_state(d, STATE + (WARMSTART, "ctrl")))])[-2:]
     run(n)
     hist["steps"] += n
     row, bad, through = check_chunk(d, collider, nworld, limit, ground, before)
@@ -421,6 +435,12 @@ def main():
     hist["seconds"] = seconds0 + now
     row = {"step": hist["steps"], "segment": segment, "seconds": hist["seconds"], **row}
     record(hist, row, bad)
+    if bad and args.save_failing and not failing_saved:
+      step, state = starts[0]
+      save_state(args.save_failing, state, dict(checkpoint_meta(), start_step=step, failed_at=hist["steps"], what=bad))
+      failing_saved = True
+      print(f"saved the state at step {step}, a chunk before the first failing chunk's end, to {args.save_failing}",
+            flush=True)
     reset = episodes.reset(d, hist["chunks"], ground.off_terrain(d))
     before = {(w, g) for w, g in through if not reset[w]}
     print(f"step {row['step']:7d}  {row['seconds']:7.1f} s  energy max {row['energy_max']:.5g}"

@@ -61,6 +61,28 @@ def test_resume_continues_bitwise(tmp_path):
   np.testing.assert_array_equal(d2.time.numpy(), d.time.numpy())
 
 
+def test_a_failing_chunks_start_restores_its_state_and_controls(tmp_path):
+  """soak.py --save-failing writes a chunk start's state with its controls (save_state): read
+  back into a fresh Data it gives that state and those controls, from which the chunk replays."""
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
+  m = mjw.put_model(mjm)
+  mjd = mujoco.MjData(mjm)
+  mujoco.mj_forward(mjm, mjd)
+  d = mjw.put_data(mjm, mjd, nworld=2, nconmax=256, njmax=1024)
+  rng = np.random.default_rng(1)
+  d.ctrl.assign(rng.uniform(-1, 1, size=(2, mjm.nu)).astype(np.float32))
+  d.qvel.assign(rng.uniform(-0.1, 0.1, size=(2, mjm.nv)).astype(np.float32))
+  state = checkpoint.read_state(d, checkpoint.STATE + (checkpoint.WARMSTART, "ctrl"))
+  path = str(tmp_path / "failing.npz")
+  meta = dict(_meta(d, {"nconmax": 256}), start_step=500, failed_at=1500, what=["a geom stuck"])
+  checkpoint.save_state(path, state, meta)
+  meta2, state2 = checkpoint.load_checkpoint(path)
+  assert meta2["start_step"] == 500 and meta2["failed_at"] == 1500 and set(state2) == set(state)
+  d2 = checkpoint.resume_start(mjm, m, meta2, state2)
+  np.testing.assert_array_equal(d2.ctrl.numpy(), d.ctrl.numpy())
+  np.testing.assert_array_equal(d2.qvel.numpy(), d.qvel.numpy())
+
+
 @pytest.mark.parametrize("nworld, nconmax, needle", [(8, None, "--nworld 8"), (None, 5, "--nconmax 5")])
 def test_mismatch_refused(nworld, nconmax, needle):
   meta = {"scene": "pile_32_128.xml", "scene_sha256": checkpoint.scene_sha256(SCENE), "nworld": 2,

@@ -92,6 +92,12 @@ def save_checkpoint(path: str, d, meta: dict, max_mib: float) -> dict:
   warm = read_state(d, (WARMSTART,))
   if sum(a.nbytes for a in state.values()) + warm[WARMSTART].nbytes <= max_mib * MIB:
     state.update(warm)
+  return save_state(path, state, meta)
+
+
+def save_state(path: str, state: dict, meta: dict) -> dict:
+  """Writes ``meta`` and the per-world arrays ``state`` (as read_state gives them) to ``path``,
+  atomically; returns what was written."""
   meta = dict(meta, warmstart_saved=WARMSTART in state)
   tmp = path + ".tmp"
   with open(tmp, "wb") as f:

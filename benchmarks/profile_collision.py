@@ -35,6 +35,7 @@ from mjx_supportfield.stages import heightfield
 from mjx_supportfield.stages import multicontact_pass
 from mjx_supportfield.stages import narrowphase
 from mjx_supportfield.tools.bench import settled_state
+from mjx_supportfield.tools.model_file import load_model
 
 
 def _value(text: str):
@@ -133,9 +134,7 @@ def main():
   p.add_argument("--no-stock", action="store_true", help="profile only the plugin variants")
   args = p.parse_args()
   wp.config.log_level = wp.LOG_WARNING
-  # a compiled model (.mjb) for scenes built by code, such as mjlab's tasks (mujoco.mj_saveModel)
-  mjm = (mujoco.MjModel.from_binary_path(args.model) if args.model.endswith(".mjb")
-         else mujoco.MjModel.from_xml_path(args.model))
+  mjm = load_model(args.model)  # MJCF, or a compiled model (.mjb) such as one saved from mjlab
   mjd = settled_state(mjm, args.settle, args.keyframe)
   ncon = int(1.5 * mjd.ncon) + 16
   for impl in ([] if args.no_stock else ["stock"]) + args.variants.split(","):

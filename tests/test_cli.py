@@ -62,6 +62,25 @@ def test_compare_report(tmp_path, capsys):
     assert summary["deep_points_reference"] > 0 and summary["contacts_outside"] == 0
 
 
+def test_compare_reads_a_compiled_model(tmp_path, capsys):
+  """A model built by code and saved compiled (.mjb, mujoco.mj_saveModel; mjlab's tasks) compares
+  as its MJCF does, and a bad one is one error line; Newton, which reads MJCF, refuses it."""
+  import mujoco
+
+  mjb = str(tmp_path / "mesh_on_plane.mjb")
+  mujoco.mj_saveModel(mujoco.MjModel.from_xml_path(model_path("mesh_on_plane")), mjb, None)
+  report = tmp_path / "report.json"
+  rc, out, err = _run(capsys, ["compare", mjb, "--steps", "10", "--samples", "2", "--json", str(report)])
+  assert rc == 0, err
+  assert json.loads(report.read_text())["impls"]["plugin"]["summary"]["pairs_reference"] > 0
+  bad = tmp_path / "bad.mjb"
+  bad.write_bytes(b"not a model")
+  rc, out, err = _run(capsys, ["compare", str(bad)])
+  assert rc == 2 and len(err.strip().splitlines()) == 1 and "bad.mjb" in err
+  rc, out, err = _run(capsys, ["bench", mjb, "--newton"])
+  assert rc == 2 and "--newton reads MJCF" in err
+
+
 def test_compare_without_collision_geoms(tmp_path, capsys):
   path = tmp_path / "ghost.xml"
   path.write_text("<mujoco><worldbody><geom type='sphere' size='.1' contype='0' conaffinity='0'/>"

@@ -18,6 +18,7 @@ from mujoco_warp._src.types import OverflowType
 from mjx_supportfield.driver import install
 from mjx_supportfield.launch import first_use
 from mjx_supportfield.options import Options
+from mjx_supportfield.tools.model_file import load_model
 
 
 @dataclasses.dataclass
@@ -157,7 +158,7 @@ def _time_collision_frozen(mjm, mjd, m, nworld: int, nconmax: int, njmax: int, l
 
 def scene_name(path: str) -> str:
   """A scene's name: its file name, or its folder's for MuJoCo Warp's ``.../aloha_pot/scene.xml``."""
-  scene = os.path.basename(path).removesuffix(".xml")
+  scene = os.path.basename(path).removesuffix(".xml").removesuffix(".mjb")
   return os.path.basename(os.path.dirname(path)) if scene == "scene" else scene
 
 
@@ -172,7 +173,7 @@ def bench_scene(path: str, nworlds: list[int], launches: int, settle_steps: int,
   overflows its room during the timed steps, so that neither is timed dropping pairs or
   constraints; a given ``nconmax`` stays, and an overflow is reported on stderr and in the rows.
   """
-  mjm = mujoco.MjModel.from_xml_path(path)
+  mjm = load_model(path)
   mjd = settled_state(mjm, settle_steps, keyframe)
   scene = scene_name(path)
   # room for what MuJoCo C finds at the settled state, with headroom for both implementations

@@ -185,7 +185,7 @@ def _parser() -> argparse.ArgumentParser:
                                  "MuJoCo C rollout, judged with exact float64 geometry on MuJoCo C's poses. "
                                  "The first run compiles Warp kernels (about a minute on a CPU, several on a GPU); "
                                  "later runs load them from Warp's kernel cache.")
-  c.add_argument("model", help="MJCF file")
+  c.add_argument("model", help="MJCF file, or a compiled model (.mjb, mujoco.mj_saveModel's)")
   c.add_argument("--steps", type=int, default=200, help="MuJoCo C steps to roll out (default 200)")
   c.add_argument("--samples", type=int, default=5, help="states sampled along the rollout (default 5)")
   c.add_argument("--nworld", type=int, default=None, help="worlds (default: one per sampled state)")
@@ -214,7 +214,7 @@ def _parser() -> argparse.ArgumentParser:
   b = sub.add_parser("bench", help="time the plugin against stock MuJoCo Warp (collision stage and step)",
                      description="Times the plugin and stock MuJoCo Warp on each model: the collision stage and "
                                  "the whole step, graph-captured on a GPU.")
-  b.add_argument("model", nargs="+", help="MJCF file(s)")
+  b.add_argument("model", nargs="+", help="MJCF file(s), or compiled models (.mjb)")
   b.add_argument("--nworld", type=_world_counts, default=None,
                  help="comma-separated world counts (default: 1024,4096,8192 on a GPU, 1,8,64 on the CPU, where a "
                       "step costs about nworld times one world's)")
@@ -239,19 +239,21 @@ def _parser() -> argparse.ArgumentParser:
   return p
 
 
-def _check_model(path: str, keyframe=None):
-  """None if ``path`` is an MJCF file MuJoCo compiles (with keyframe ``keyframe``, if given),
-  else the error line."""
+def _check_model(path: str, keyframe=None, newton: bool = False):
+  """None if ``path`` is an MJCF file MuJoCo compiles or a compiled model (``.mjb``; not for
+  Newton, which reads MJCF), with keyframe ``keyframe`` if given, else the error line."""
   if os.path.isdir(path):
     xml = sorted(f for f in os.listdir(path) if f.endswith(".xml"))
     hint = f" (it holds {', '.join(xml[:3])}{', ...' if len(xml) > 3 else ''})" if xml else ""
     return f"{path} is a directory; give an MJCF model file{hint}"
   if not os.path.isfile(path):
     return f"model file not found: {path}"
-  import mujoco
+  if newton and path.endswith(".mjb"):
+    return f"{path}: --newton reads MJCF (Newton's importer), not a compiled model"
+  from mjx_supportfield.tools.model_file import load_model
 
   try:  # before Warp starts and compiles kernels
-    mjm = mujoco.MjModel.from_xml_path(path)
+    mjm = load_model(path)
   except ValueError as e:
     return f"{path}: {e}"
   if keyframe is not None and keyframe >= mjm.nkey:
@@ -299,7 +301,8 @@ def main(argv=None) -> int:
   args = _parser().parse_args(argv)
   models = args.model if isinstance(getattr(args, "model", None), list) else [getattr(args, "model", None)]
   for path in models:
-    if path is not None and (problem := _check_model(path, getattr(args, "keyframe", None))):
+    if path is not None and (problem := _check_model(path, getattr(args, "keyframe", None),
+                                                     getattr(args, "newton", False))):
       return _error(problem)
   problem = _check_args(args) or _check_device(getattr(args, "device", None))
   if problem:

@@ -32,6 +32,7 @@ from mjx_supportfield.driver import install
 from mjx_supportfield.options import Options
 from mjx_supportfield.stages.nonconvex import nonconvex_geom_ids
 from mjx_supportfield.tools import exact
+from mjx_supportfield.tools.model_file import load_model
 
 NORMAL_DIFFER_DEG = 1.0  # normals closer than this to MuJoCo C's are not adjudicated
 NORMAL_FAR_DEG = 5.0  # a normal this far off and worse than MuJoCo C's fails the check
@@ -532,7 +533,7 @@ def compare(
 ) -> dict:
   """Runs the comparison of the plugin (``options``) and stock MuJoCo Warp on states of a
   MuJoCo C rollout of the model at ``path`` and returns the report (see ``format_report``)."""
-  mjm = mujoco.MjModel.from_xml_path(path)
+  mjm = load_model(path)
   if collision_geoms(mjm) == 0:
     raise ValueError(f"{path}: the model has no collision geoms (every geom has contype = conaffinity = 0 and no "
                      "<pair> names one): there are no contacts to compare")

@@ -62,7 +62,7 @@ def test_compare_report(tmp_path, capsys):
     assert summary["deep_points_reference"] > 0 and summary["contacts_outside"] == 0
 
 
-def test_compare_reads_a_compiled_model(tmp_path, capsys):
+def test_compare_reads_a_compiled_model(tmp_path, capsys, monkeypatch):
   """A model built by code and saved compiled (.mjb, mujoco.mj_saveModel; mjlab's tasks) compares
   as its MJCF does, and a bad one is one error line; Newton, which reads MJCF, refuses it."""
   import mujoco
@@ -75,6 +75,7 @@ def test_compare_reads_a_compiled_model(tmp_path, capsys):
   assert json.loads(report.read_text())["impls"]["plugin"]["summary"]["pairs_reference"] > 0
   bad = tmp_path / "bad.mjb"
   bad.write_bytes(b"not a model")
+  monkeypatch.chdir(tmp_path)  # MuJoCo writes MUJOCO_LOG.TXT where it runs
   rc, out, err = _run(capsys, ["compare", str(bad)])
   assert rc == 2 and len(err.strip().splitlines()) == 1 and "bad.mjb" in err
   rc, out, err = _run(capsys, ["bench", mjb, "--newton"])

@@ -1,12 +1,13 @@
 """Whether a box and a heightfield triangle's prism are apart, by separating axes.
 
-Two convex polytopes are apart by at least a distance exactly when some axis parts them by as
-much: a face normal of either, or the cross product of an edge direction of each. The heightfield
+Two convex polytopes overlap unless some axis parts them: a face normal of either, or the cross
+product of an edge direction of each. The gap along an axis is at most their distance, so an
+axis that parts them by the margin band proves them apart by at least the band. The heightfield
 stage tests the prism's own faces (its top plane and side walls) with support queries for every
 geom; ``box_axes_part`` adds the box's three axes and the cross products of the box's edges with
 the prism's (its top edges, base edges and vertical edges), so that a box's prism goes to GJK/EPA
-only when the two overlap or lie within the margin band, where GJK/EPA answers anyway. Most
-prisms under a box lying on rough terrain are parted by one of these: their GJK runs found nothing.
+only when no axis parts them by the band, and most prisms under a box lying on rough terrain
+(whose GJK runs found nothing) are left out. ``box_distance`` does the same for a terrain point.
 
 This module launches nothing.
 """

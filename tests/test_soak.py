@@ -225,3 +225,31 @@ def test_soak_rate_runs_the_soaks_driving_and_check(engine):
   assert not ground.geoms_through(view)
   mjd.geom_xpos[foot, 2] -= 0.2  # well under the rough tile
   assert ground.geoms_through(view) == [(0, "r0_FR_foot_collision")]
+
+
+@pytest.mark.parametrize("engine", ["plugin", "mujoco_c"])
+def test_replay_finds_the_failing_worlds_robot_in_the_ground(tmp_path, engine):
+  """benchmarks/soak_replay.py puts the world a --save-failing checkpoint names (here world 1, its
+  first robot a metre down) into one world of the engine and finds its geoms in the ground."""
+  sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+  import soak_replay  # noqa: PLC0415 - a script of benchmarks/, not a package
+
+  soak = _soak_module()
+  scene = os.path.join(ROOT, "models", "real", "quadruped_rough.xml")
+  mjm = mujoco.MjModel.from_xml_path(scene)
+  d = mjw.put_data(mjm, soak.real_scenes.initial_data(mjm), nworld=2, nconmax=256, njmax=1024)
+  trunk = soak.real_scenes.free_bodies(mjm)[0]
+  qpos = d.qpos.numpy()
+  qpos[1, mjm.jnt_qposadr[mjm.body_jntadr[trunk]] + 2] -= 1.0
+  d.qpos.assign(qpos)
+  state = checkpoint.read_state(d, checkpoint.STATE + (checkpoint.WARMSTART, "ctrl"))
+  meta = {"format": checkpoint.FORMAT, "scene": "quadruped_rough.xml", "scene_path": scene,
+          "scene_sha256": checkpoint.scene_sha256(scene), "nworld": 2, "ref": {"nconmax": 256}, "versions": {},
+          "start_step": 500, "failed_at": 1500, "what": ["2 geoms in the ground at two chunk ends in a row, "
+                                                         "first (world, geom) [(1, 'r0_trunk_collision')]"]}
+  path = str(tmp_path / "failing.npz")
+  checkpoint.save_state(path, state, meta)
+  result = soak_replay.replay(path, steps=20, check_every=10, engine=engine)
+  assert result["world"] == 1 and result["first_in_ground"] == 510 and result["most_in_ground"] > 0
+  with pytest.raises(ValueError, match="--world 5"):
+    soak_replay.replay(path, world=5, steps=1, engine=engine)

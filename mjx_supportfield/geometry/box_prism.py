@@ -7,7 +7,7 @@ stage tests the prism's own faces (its top plane and side walls) with support qu
 geom; ``box_axes_part`` adds the box's three axes and the cross products of the box's edges with
 the prism's (its top edges, base edges and vertical edges), so that a box's prism goes to GJK/EPA
 only when no axis parts them by the band, and most prisms under a box lying on rough terrain
-(whose GJK runs found nothing) are left out. ``box_distance`` does the same for a terrain point.
+(whose GJK runs found nothing) are left out.
 
 This module launches nothing.
 """
@@ -85,11 +85,3 @@ def box_axes_part(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box: Sha
         return True
   return False
 
-
-@wp.func
-def box_distance(q: wp.vec3, box: Shape) -> float:
-  """The distance from point q to the box (0 inside it)."""
-  local = wp.transpose(box.rot) @ (q - box.pos)
-  out = wp.vec3(wp.max(wp.abs(local[0]) - box.size[0], 0.0), wp.max(wp.abs(local[1]) - box.size[1], 0.0),
-                wp.max(wp.abs(local[2]) - box.size[2], 0.0))
-  return wp.length(out)

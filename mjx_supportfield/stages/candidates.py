@@ -102,8 +102,8 @@ def tag_at(c: wp.ref[Candidates], k: int) -> int:
 
 @wp.func
 def triangle_tag(triangle: int, source: int) -> int:
-  """Candidates.tag of a mesh's candidate of terrain triangle ``triangle`` from ``source``
-  (TAG_PRISM, TAG_DEEPEST or TAG_VERTEX)."""
+  """Candidates.tag of a box's or a mesh's candidate of terrain triangle ``triangle`` from
+  ``source`` (TAG_PRISM, TAG_DEEPEST or TAG_VERTEX)."""
   return 4 * triangle + 1 + source
 
 

@@ -20,14 +20,13 @@ from mujoco_warp._src.collision_gjk import ccd
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.geometry.box_prism import box_axes_part
-from mjx_supportfield.geometry.box_prism import box_distance
 from mjx_supportfield.geometry.mpr import MprResult
 from mjx_supportfield.geometry.mpr import MprSettings
 from mjx_supportfield.geometry.mpr import mpr_funcs
+from mjx_supportfield.geometry.sdf import primitive_sdf
 from mjx_supportfield.geometry.shapes import posed_shape
 from mjx_supportfield.geometry.support import support_funcs
 from mjx_supportfield.stages.candidates import Candidates
-from mjx_supportfield.stages.candidates import add_candidate
 from mjx_supportfield.stages.candidates import add_tagged
 from mjx_supportfield.stages.candidates import TAG_DEEPEST
 from mjx_supportfield.stages.candidates import TAG_PRISM
@@ -421,7 +420,7 @@ def window_funcs(mode: int) -> SimpleNamespace:
             out = wp.normalize(out)
             wanted = wp.dot(q - support_world(b, ms, out), out) <= band
           if wanted and b.gtype == GeomType.BOX:  # a point's MPR on a box finds what its distance says
-            wanted = box_distance(q, b) <= band
+            wanted = primitive_sdf(GeomType.BOX, b.size, wp.transpose(b.rot) @ (q - b.pos)) <= band
       if wanted:
         mask = mask | (1 << job)
       job += 1

@@ -141,7 +141,8 @@ class Collider:
       sensor = pairids[:, 1] >= 0
       # no world can have more pairs than the model allows after its static filters
       max_pairs = max(1, min(options.max_collision_pairs, len(pairs)))
-      nxn = options.broadphase == "nxn" or (options.broadphase == "auto" and len(pairs) <= broadphase.nxn_pair_limit(mjm, pairs))
+      nxn = options.broadphase == "nxn" or (options.broadphase == "auto"
+                                            and len(pairs) <= broadphase.nxn_pair_limit(mjm, pairs))
       t1, t2 = np.sort(np.asarray(mjm.geom_type)[pairs], axis=1).T if len(pairs) else (np.zeros(0, int),) * 2
       # the pair classes routed to MuJoCo Warp's narrow phase (Options.stock_pair_classes), by the
       # table the broad phase routes them with

@@ -580,3 +580,31 @@ def test_corner_hovering_in_margin_past_the_rim_gets_mujocos_point():
   got = contacts(sim.d, 0)
   assert got.n >= 1
   assert min(float(np.linalg.norm(p - ref[0])) for p in got.pos.astype(float)) < 3e-3
+
+
+@pytest.mark.parametrize("narrowphase", NARROWPHASES)
+def test_cylinder_end_on_cylinder_end_gets_mujocos_points(narrowphase):
+  """A cylinder standing on another's end, 4 degrees off and half a radius aside, 2 mm deep: the
+  two 16-gons are clipped (a 16-gon on a 16-gon is over FACE_PAIR_BUDGET; faceclip's _budget lets
+  this pair through) and MuJoCo C's points of the overlap, every one deeper than 0.5 mm, are
+  among the plugin's. The tilts found the deepest rim point but not the clipped corners beside it."""
+  r, h, depth, tilt = 0.025, 0.022, 2e-3, np.radians(4.0)
+  lift = h * np.cos(tilt) + r * np.sin(tilt) - depth  # the upper end's lowest rim point 2 mm down
+  xml = f"""
+  <mujoco>
+    <worldbody>
+      <geom name="lower" type="cylinder" size="{r} {h}" pos="0 0 {1 - h}"/>
+      <body pos="{0.5 * r} 0 {1 + lift}" euler="{np.degrees(tilt)} 0 0">
+        <freejoint/><geom name="upper" type="cylinder" size="{r} {h}"/>
+      </body>
+    </worldbody>
+  </mujoco>"""
+  sim = load(xml)
+  sf.install(sim.mjm, sim.m, sf.Options(narrowphase=narrowphase))
+  sf.collision(sim.m, sim.d)
+  c = contacts(sim.d, 0)
+  deep = np.array([x.pos for x in sim.mjd.contact[: sim.mjd.ncon] if x.dist <= -5e-4])
+  assert len(deep) >= 2
+  far = _covered(c.pos.astype(np.float64), deep)
+  assert far.max() < 1e-3, f"MuJoCo C's points {np.round(deep[far >= 1e-3], 4)} uncovered"
+  assert c.dist.min() == pytest.approx(sim.mjd.contact.dist[: sim.mjd.ncon].min(), abs=1e-4)

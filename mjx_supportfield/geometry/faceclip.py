@@ -856,6 +856,14 @@ def _tilted_face_feature(s: Shape, ms: MeshSupport, f: Face, u: wp.vec3) -> Face
   return seg
 
 
+@wp.func
+def _budget(ref: Face, inc: Face) -> int:
+  """The corner pairs a face pair may clip: FACE_PAIR_BUDGET, or a whole 16-gon on a 16-gon for
+  a cylinder's end on another's (stacked cylinders), whose tilts would all land around the
+  deepest point of the rim instead of spanning the overlap of the two ends."""
+  return wp.where(ref.kind == FACE_DISK and inc.kind == FACE_DISK, DISK_CORNERS * DISK_CORNERS, FACE_PAIR_BUDGET)
+
+
 @functools.lru_cache(maxsize=None)
 def faceclip_funcs(mode: int) -> SimpleNamespace:
   """Face clipping's device functions on the support functions of support mode ``mode``
@@ -952,7 +960,7 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
     a face and the two are parallel (within FACE_TOL), A's is the reference, as in MuJoCo.
     Returns (1 where the reference is B's, else 0; the reference's face_code; the incident's), or
     x = -1 where the pair is left to the tilts: neither has a face there, the other shape meets
-    it in a point of a curved surface, or the polygons are over FACE_PAIR_BUDGET."""
+    it in a point of a curved surface, or the polygons are over their budget (_budget)."""
     none = wp.vec3i(-1, 0, 0)
     fa = _flat_face(a, ms, normal)
     fb = _flat_face(b, ms, -normal)
@@ -977,7 +985,7 @@ def faceclip_funcs(mode: int) -> SimpleNamespace:
       # along the normal alone, a sliver beside a pot's bottom, around the support vertex)
       if face_face and (inc.kind == FACE_SEGMENT or wp.dot(fb.normal, normal) < wp.dot(inc.normal, normal)):
         inc = fb
-    if inc.kind == FACE_NONE or ref.nvert * inc.nvert > FACE_PAIR_BUDGET:
+    if inc.kind == FACE_NONE or ref.nvert * inc.nvert > _budget(ref, inc):
       return none
     return wp.vec3i(wp.where(ref_is_b, 1, 0), face_code(ref), face_code(inc))
 

@@ -193,6 +193,9 @@ class Ground:
     self.moving = [g for g in range(mjm.ngeom) if mjm.body_weldid[mjm.geom_bodyid[g]] != 0
                    and (mjm.geom_contype[g] or mjm.geom_conaffinity[g])]
     self.roots = real_scenes.free_bodies(mjm)
+    # each moving geom's free root body (its column in self.roots), -1 for a geom without one
+    root_of = {b: i for i, b in enumerate(self.roots)}
+    self.root_column = np.array([root_of.get(int(mjm.body_rootid[mjm.geom_bodyid[g]]), -1) for g in self.moving])
     mjd = mujoco.MjData(mjm)
     mujoco.mj_kinematics(mjm, mjd)  # static geoms sit where they are in every world
     self.geom_xpos, self.geom_xmat = mjd.geom_xpos.copy(), mjd.geom_xmat.copy()
@@ -206,11 +209,21 @@ class Ground:
 
   def geoms_through(self, d, skip=None) -> list:
     """(world, geom name) of every moving collision geom whose centre is inside the ground, in
-    the worlds ``skip`` (a mask) does not exclude."""
+    the worlds ``skip`` (a mask) does not exclude. Under a heightfield that is its slab, down to
+    the base: a foot hanging over the terrain's edge sinks below the slab, and can swing under it,
+    with no contact in MuJoCo C either. Where a free body's own centre is under the surface (a
+    robot that went through), each of its geoms under the surface counts, below the slab too."""
     if not self.static or not self.moving:
       return []
     centres = d.geom_xpos.numpy()[:, self.moving]
-    inside = real_scenes.inside_static(self.mjm, centres, self.geom_xpos, self.geom_xmat, self.static)
+    inside = real_scenes.inside_static(self.mjm, centres, self.geom_xpos, self.geom_xmat, self.static,
+                                       below_slab=False)
+    if self.roots:
+      under = real_scenes.inside_static(self.mjm, centres, self.geom_xpos, self.geom_xmat, self.static)
+      sunk = real_scenes.inside_static(self.mjm, d.xpos.numpy()[:, self.roots], self.geom_xpos, self.geom_xmat,
+                                       self.static)
+      sunk = np.concatenate([sunk, np.zeros((len(sunk), 1), dtype=bool)], axis=1)  # column -1: no free root
+      inside |= under & sunk[:, self.root_column]
     if skip is not None:
       inside &= ~np.asarray(skip)[:, None]
     return [(int(w), self.mjm.geom(self.moving[i]).name) for w, i in zip(*np.nonzero(inside))]

@@ -4,6 +4,7 @@ resumed soak continues the state exactly, a mismatched one is refused."""
 import os
 import subprocess
 import sys
+import types
 
 import mujoco
 import mujoco_warp as mjw
@@ -141,6 +142,38 @@ def test_ground_finds_a_geom_through_the_terrain():
   np.testing.assert_array_equal(ground.off_terrain(d), [False, False, True])
 
 
+def _host(a: np.ndarray):
+  """One world's array as a batch with .numpy(), as soak.Ground reads MuJoCo Warp's data."""
+  return types.SimpleNamespace(numpy=lambda: a[None])
+
+
+def test_a_foot_hanging_over_the_edge_under_the_slab_is_not_through_the_ground():
+  """A heightfield is a slab hfield_size[3] thick: a foot that hung over the terrain's edge and
+  swung under the slab, its robot standing on the terrain, is not in the ground (MuJoCo C has no
+  contact there either); the same foot inside the slab is, and so is every geom of a robot whose
+  trunk went under the surface, below the slab too."""
+  soak = _soak_module()
+  mjm = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "models", "real", "quadruped_rough.xml"))
+  mjd = soak.real_scenes.initial_data(mjm)
+  mujoco.mj_kinematics(mjm, mjd)
+  ground = soak.Ground(mjm)
+  tile = mjm.geom("terrain_rough").id
+  base = mjd.geom_xpos[tile][2] - mjm.hfield_size[mjm.geom_dataid[tile]][3]
+  foot = mjm.geom("r0_FR_foot_collision").id
+
+  def through(foot_z, trunk_z=None):
+    geom_xpos, xpos = mjd.geom_xpos.copy(), mjd.xpos.copy()
+    geom_xpos[foot, 2] = foot_z
+    if trunk_z is not None:
+      xpos[soak.real_scenes.free_bodies(mjm)[0], 2] = trunk_z
+    view = types.SimpleNamespace(nworld=1, geom_xpos=_host(geom_xpos), xpos=_host(xpos))
+    return ground.geoms_through(view)
+
+  assert through(base - 0.01) == []
+  assert through(base + 0.01) == [(0, "r0_FR_foot_collision")]
+  assert through(base - 0.01, trunk_z=base - 0.02) == [(0, "r0_FR_foot_collision")]
+
+
 def test_a_geom_in_the_ground_fails_only_at_two_chunk_ends_in_a_row():
   """check_chunk counts a geom whose centre is in the ground and fails the chunk only when the
   same geom of the same world was there at the chunk end before (a jam MuJoCo C also makes and
@@ -223,7 +256,7 @@ def test_soak_rate_runs_the_soaks_driving_and_check(engine):
   view = soak_rate.types.SimpleNamespace(nworld=1, geom_xpos=soak_rate._batch([mjd], "geom_xpos"),
                                           xpos=soak_rate._batch([mjd], "xpos"))
   assert not ground.geoms_through(view)
-  mjd.geom_xpos[foot, 2] -= 0.2  # well under the rough tile
+  mjd.geom_xpos[foot, 2] -= 0.05  # 3 cm under the rough tile's surface, in its slab
   assert ground.geoms_through(view) == [(0, "r0_FR_foot_collision")]
 
 

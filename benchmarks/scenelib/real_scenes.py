@@ -364,9 +364,12 @@ def static_extent(mjm: mujoco.MjModel, static: list[int], geom_xpos: np.ndarray,
 
 
 def inside_static(mjm: mujoco.MjModel, points: np.ndarray, geom_xpos: np.ndarray, geom_xmat: np.ndarray,
-                  static: list[int]) -> np.ndarray:
+                  static: list[int], below_slab: bool = True) -> np.ndarray:
   """Which of ``points`` (..., 3) lie inside a static box, under a static plane or under a
-  heightfield's surface (geom_xpos and geom_xmat: one world's, (ngeom, 3) and (ngeom, 9))."""
+  heightfield's surface (geom_xpos and geom_xmat: one world's, (ngeom, 3) and (ngeom, 9)).
+  Without ``below_slab``, a point under a heightfield counts only within its slab, down to its
+  base (hfield_size[3] under the geom's origin): below that there is no ground, and a leg
+  hanging over the terrain's edge can reach there without passing through it."""
   p = np.asarray(points, dtype=float)
   inside = np.zeros(p.shape[:-1], dtype=bool)
   for g in static:
@@ -378,7 +381,10 @@ def inside_static(mjm: mujoco.MjModel, points: np.ndarray, geom_xpos: np.ndarray
       inside |= local[..., 2] < 0.0
     else:
       with np.errstate(invalid="ignore"):
-        inside |= local[..., 2] < _hfield_heights(mjm, g, local[..., 0], local[..., 1])
+        under = local[..., 2] < _hfield_heights(mjm, g, local[..., 0], local[..., 1])
+      if not below_slab:
+        under &= local[..., 2] > -mjm.hfield_size[mjm.geom_dataid[g]][3]
+      inside |= under
   return inside
 
 

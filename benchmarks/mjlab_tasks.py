@@ -1,7 +1,7 @@
 """mjlab's tasks stepped stock and with the plugin, through mjlab's own graph-captured step.
 
   python benchmarks/mjlab_tasks.py [--tasks Mjlab-Velocity-Rough-Unitree-Go1 ...] [--num-envs 1024 4096]
-                                   [--steps 200] [--device cuda:0] [--json OUT]
+                                   [--steps 200] [--profile 10] [--device cuda:0] [--json OUT]
 
 Needs mjlab 1.6.0 over our pins (docs/mjlab.md). For each task, env count and implementation
 ("stock", then "plugin": ``install(env.sim.mj_model, env.sim.wp_model)``, one collision
@@ -12,6 +12,10 @@ contacts per world, worlds with NaN in qpos or qvel, worlds with a body below th
 (``bodies_below_ground``: more than 0.2 m under the lowest point of any heightfield, box or plane
 of the static world), MuJoCo Warp's overflow flags (``overflow_flags``; ``buffer_overflow``
 names those of buffers that drop contacts or constraints), as JSON with the GPU's name.
+With ``--profile N``, N more env steps are timed by Warp's CUDA activity timing: GPU milliseconds
+per env step in all, the ``--top`` activities (a CUDA graph's launch is one, "graph": mjlab's
+captured physics shows as its graphs), and the wall time of those steps, to tell GPU work from
+host work.
 
 mjlab imports wandb, torchrunx, onnxscript and imageio_ffmpeg at module level for what its tasks
 never call; ``stub_optional_imports`` stands in for those that are not installed.
@@ -164,6 +168,28 @@ def run(env, steps: int, warmup: int) -> dict:
           "buffer_overflow": [e.name for e in OverflowType if overflow & buffers & int(e)], "steps": steps}
 
 
+def profile(env, steps: int, top: int) -> dict:
+  """GPU milliseconds per env step of ``steps`` more random-action steps, by kernel name."""
+  import collections
+
+  import torch
+  import warp as wp
+
+  shape = env.action_space.shape
+  wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+  t0 = time.perf_counter()
+  for _ in range(steps):
+    env.step(torch.rand(shape, device=env.device) * 2.0 - 1.0)
+  wp.synchronize()
+  wall = time.perf_counter() - t0
+  per = collections.defaultdict(float)
+  for r in wp.timing_end():
+    per[r.name] += r.elapsed / steps
+  ranked = sorted(per.items(), key=lambda x: -x[1])
+  return {"gpu_ms_per_step": sum(per.values()), "wall_ms_per_step": 1e3 * wall / steps,
+          "top_kernels": [[name[:120], ms] for name, ms in ranked[:top]]}
+
+
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   parser.add_argument("--tasks", nargs="*", default=list(TASKS))
@@ -171,6 +197,8 @@ def main(argv=None) -> int:
   parser.add_argument("--impl", nargs="*", default=["stock", "plugin"], choices=["stock", "plugin"])
   parser.add_argument("--steps", type=int, default=200)
   parser.add_argument("--warmup", type=int, default=20)
+  parser.add_argument("--profile", type=int, default=0, help="env steps timed kernel by kernel (CUDA only)")
+  parser.add_argument("--top", type=int, default=25, help="kernels listed by --profile")
   parser.add_argument("--device", default="cuda:0")
   parser.add_argument("--json", default=None)
   args = parser.parse_args(argv)
@@ -186,6 +214,8 @@ def main(argv=None) -> int:
       for impl in args.impl:
         env = make_env(task, num_envs, args.device, impl == "plugin")
         row = {"task": task, "num_envs": num_envs, "impl": impl, **run(env, args.steps, args.warmup)}
+        if args.profile and args.device.startswith("cuda"):
+          row["profile"] = profile(env, args.profile, args.top)
         report["rows"].append(row)
         print(json.dumps(row), flush=True)
         env.close()

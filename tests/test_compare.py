@@ -356,3 +356,28 @@ def test_inner_prism_walls_are_told_apart():
   assert _inner_wall(scene, ref, Contact((0, 1), -0.01, inside, np.array([0.0, 0.866, 0.5])))  # steeper than any
   assert not _inner_wall(scene, ref, Contact((0, 1), -0.01, border, np.array([0.6, 0.8, 0.0])))
   assert not _inner_wall(scene, ref, Contact((0, 1), -0.01, inside, np.array([0.0, 0.6, 0.8])))
+
+
+def test_a_heightfield_point_is_answered_on_its_own_prism_by_as_good_a_normal():
+  """MuJoCo C writes one contact a triangle's prism, at EPA's witness, anywhere on a flat overlap:
+  a missed point of C's counts as answered on its prism when a contact of the pair lies over the
+  same triangle with a normal whose exact overlap of the geom and the prism is no larger; not
+  from the cell's other triangle, and not with a worse normal."""
+  from mjx_supportfield.tools.compare import Reference
+  from mjx_supportfield.tools.compare import _prism_answered
+  from mjx_supportfield.tools.compare import _scene
+
+  mjm = mujoco.MjModel.from_xml_string("""<mujoco><asset><hfield name="h" nrow="3" ncol="3" size="1 1 .1 .1"
+    elevation="0 0 0 0 0 0 0 0 0"/></asset><worldbody>
+    <geom type="hfield" hfield="h"/>
+    <body pos="0.3 0.2 0.098"><freejoint/><geom type="box" size=".1 .1 .1"/></body></worldbody></mujoco>""")
+  mjd = mujoco.MjData(mjm)
+  mujoco.mj_kinematics(mjm, mjd)
+  ref = Reference([], mjd.geom_xpos.copy(), mjd.geom_xmat.reshape(-1, 3, 3).copy())
+  scene = _scene(mjm, {"stock": None}, 5e-4, 3e-3)
+  up, tilted = np.array([0.0, 0.0, 1.0]), np.array([np.sin(0.5), 0.0, np.cos(0.5)])
+  # cell (1, 1) spans x, y in [0, 1]; its diagonal y = x parts the triangle under y < x from the other
+  c = Contact((0, 1), -0.002, np.array([0.35, 0.15, -0.001]), up)  # the box's face 2 mm into the flat terrain
+  assert _prism_answered(scene, ref, c, [Contact((0, 1), -0.002, np.array([0.25, 0.12, -0.001]), up)])
+  assert not _prism_answered(scene, ref, c, [Contact((0, 1), -0.002, np.array([0.22, 0.28, -0.001]), up)])
+  assert not _prism_answered(scene, ref, c, [Contact((0, 1), -0.002, np.array([0.25, 0.12, -0.001]), tilted)])

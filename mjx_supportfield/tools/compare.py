@@ -248,7 +248,9 @@ class _Scene:
 
 def deep_points(scene: _Scene, ref: Reference, contacts: list[Contact]) -> list[dict]:
   """MuJoCo C's contact points at least min_depth deep, each with the distance to the nearest
-  contact of the same (unordered) pair in ``contacts``; missed when farther than radius."""
+  contact of the same (unordered) pair in ``contacts``; missed when farther than radius. A
+  missed heightfield point that is not an inner wall's carries ``prism_answered``
+  (_prism_answered)."""
   positions = _positions_by_pair(contacts)
   rows = []
   for c in ref.contacts:
@@ -256,10 +258,59 @@ def deep_points(scene: _Scene, ref: Reference, contacts: list[Contact]) -> list[
       continue
     pair = tuple(sorted(c.geom))
     nearest = _nearest(positions.get(pair), c.pos)
-    rows.append({"pair": scene.label(pair), "geoms": pair, "kind": scene.kind(pair), "dist": c.dist,
-                 "pos": c.pos.tolist(), "nearest": None if math.isinf(nearest) else nearest,
-                 "missed": not nearest <= scene.radius, "inner_wall": _inner_wall(scene, ref, c)})
+    row = {"pair": scene.label(pair), "geoms": pair, "kind": scene.kind(pair), "dist": c.dist,
+           "pos": c.pos.tolist(), "nearest": None if math.isinf(nearest) else nearest,
+           "missed": not nearest <= scene.radius, "inner_wall": _inner_wall(scene, ref, c)}
+    if row["missed"] and row["kind"] == "hfield" and not row["inner_wall"]:
+      row["prism_answered"] = _prism_answered(scene, ref, c, contacts)
+    rows.append(row)
   return rows
+
+
+def _prism_world(scene: _Scene, ref: Reference, g: int, pos: np.ndarray) -> Optional[np.ndarray]:
+  """The prism (6, 3), in the world frame, of heightfield geom g's triangle whose column holds
+  ``pos`` (as MuJoCo C splits the cell), or None where pos lies off the grid."""
+  mjm = scene.mjm
+  data = int(mjm.geom_dataid[g])
+  size = mjm.hfield_size[data]
+  nrow, ncol = int(mjm.hfield_nrow[data]), int(mjm.hfield_ncol[data])
+  rot = ref.xmat[g]
+  local = rot.T @ (np.asarray(pos, dtype=np.float64) - ref.xpos[g])
+  col = math.floor((local[0] + size[0]) / (2.0 * size[0] / (ncol - 1)))
+  row = math.floor((local[1] + size[1]) / (2.0 * size[1] / (nrow - 1)))
+  if not (0 <= row < nrow - 1 and 0 <= col < ncol - 1):
+    return None
+  prisms = exact.hfield_prisms(mjm, data, row, row + 1, col, col + 1)  # the cell's two triangles
+  inside = exact.in_triangle_xy(local, prisms[:, 0], prisms[:, 1], prisms[:, 2])
+  prism = prisms[int(np.argmax(inside))]
+  return ref.xpos[g] + prism @ rot.T
+
+
+def _prism_answered(scene: _Scene, ref: Reference, c: Contact, contacts: list[Contact]) -> bool:
+  """Whether MuJoCo C's heightfield contact ``c`` is answered on its own prism: MuJoCo C writes
+  one contact a triangle's prism, at EPA's witness, which on a face lying on the triangle can end
+  anywhere on their overlap. The prism is answered when a contact of the same pair in
+  ``contacts`` lies over the same triangle with a normal whose exact overlap of the geom and the
+  (convex) prism is no larger than along MuJoCo C's normal."""
+  g = c.geom[0] if c.geom[0] in scene.hfield else c.geom[1]
+  other = c.geom[1] if g == c.geom[0] else c.geom[0]
+  prism = _prism_world(scene, ref, g, c.pos)
+  if prism is None or other in scene.hfield:
+    return False
+
+  def overlap(contact: Contact) -> float:  # along the normal from the terrain into the geom
+    n = np.asarray(contact.normal, dtype=np.float64) * (1.0 if contact.geom[0] == g else -1.0)
+    n /= np.linalg.norm(n)
+    return float((prism @ n).max()) + exact.support(scene.mjm, other, ref.xpos[other], ref.xmat[other], -n)
+
+  tol = TIE_REL * scene.size[other] + TIE_ABS
+  bound = overlap(c) + tol
+  pair = tuple(sorted(c.geom))
+  for o in contacts:
+    if tuple(sorted(o.geom)) == pair and np.array_equal(_prism_world(scene, ref, g, o.pos), prism):
+      if overlap(o) <= bound:
+        return True
+  return False
 
 
 # a heightfield contact normal steeper than the grid's steepest facet by this much (its z in the
@@ -378,6 +429,8 @@ def _fidelity_summary(per_state: list[dict]) -> dict:
     "deep_points_missed_hfield": count(deep, ("hfield",), True),
     # MuJoCo C's points whose normal is an inner prism wall's: no normal of the terrain's surface
     "deep_points_missed_hfield_inner_wall": sum(1 for r in deep if r["missed"] and r.get("inner_wall")),
+    # the rest of those missed whose prism has a contact over it with a normal as good (exact overlap)
+    "deep_points_missed_hfield_prism_answered": sum(1 for r in deep if r["missed"] and r.get("prism_answered")),
     "deep_points_reference_nonconvex": count(deep, ("nonconvex",)),
     "deep_points_missed_nonconvex": count(deep, ("nonconvex",), True),
     "normals_differ": len(judged),
@@ -460,7 +513,8 @@ def compare_states(mjm: mujoco.MjModel, states: list[np.ndarray], impls: dict, m
   deep_points_reference / _missed / _missed_fraction (MuJoCo C's points >= min_depth deep
   without a contact of their pair within radius; heightfield pairs included, also counted
   apart as ..._hfield, and of those missed the ones whose MuJoCo C normal is an inner prism
-  wall's as ..._hfield_inner_wall; pairs with a non-convex mesh only in ..._nonconvex), normals_differ /
+  wall's as ..._hfield_inner_wall, the others answered over their own prism by as good a normal
+  as ..._hfield_prism_answered; pairs with a non-convex mesh only in ..._nonconvex), normals_differ /
   _better / _tie / _worse (verdicts by exact overlap where the deepest normals differ by more
   than NORMAL_DIFFER_DEG), pairs_normal_over_5deg, pairs_normal_worse (over 5 deg and worse),
   normals_skipped_hfield / _nonconvex, contacts_checked, contacts_outside, max_outside [m],
@@ -570,6 +624,7 @@ _ROWS = [
   ("deep_points_reference_hfield", "  of which on heightfields", "d"),
   ("deep_points_missed_hfield", "    missed", "d"),
   ("deep_points_missed_hfield_inner_wall", "      of which MuJoCo C's normal an inner prism wall's", "d"),
+  ("deep_points_missed_hfield_prism_answered", "      else answered over the same prism, as good a normal", "d"),
   ("deep_points_reference_nonconvex", "deep points, non-convex meshes", "d"),
   ("deep_points_missed_nonconvex", "  missed (not counted)", "d"),
   ("normals_differ", "normals > 1 deg off, adjudicated", "d"),
@@ -585,6 +640,7 @@ _ROWS = [
   ("max_outside", "  max distance outside a geom [m]", ".2e"),
 ]
 _OPTIONAL_ROWS = {"deep_points_reference_hfield", "deep_points_missed_hfield", "deep_points_missed_hfield_inner_wall",
+                  "deep_points_missed_hfield_prism_answered",
                   "deep_points_reference_nonconvex",
                   "deep_points_missed_nonconvex", "normals_skipped_hfield", "normals_skipped_nonconvex"}
 LEGEND = ("deep point: a MuJoCo C contact >= min depth deep, missed when no contact of its pair lies within the radius; "

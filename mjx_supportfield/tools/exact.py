@@ -316,11 +316,12 @@ def _prism_distances(prisms: np.ndarray, p: np.ndarray) -> np.ndarray:
   n *= np.sign(n[:, 2:3])  # upward
   below_top = np.einsum("ij,ij->i", n, p - a) <= 0.0
   above_base = p[2] >= prisms[:, 3, 2]
-  inside = below_top & above_base & _in_triangle_xy(p, a, b, c)
+  inside = below_top & above_base & in_triangle_xy(p, a, b, c)
   return np.where(inside, 0.0, d)
 
 
-def _in_triangle_xy(p, a, b, c) -> np.ndarray:
+def in_triangle_xy(p, a, b, c) -> np.ndarray:
+  """Whether point p lies over each triangle (a[i], b[i], c[i]) seen along z (edges included)."""
   def edge(u, v):
     return (v[:, 0] - u[:, 0]) * (p[1] - u[:, 1]) - (v[:, 1] - u[:, 1]) * (p[0] - u[:, 0])
 

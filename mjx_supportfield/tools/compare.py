@@ -267,23 +267,11 @@ def deep_points(scene: _Scene, ref: Reference, contacts: list[Contact]) -> list[
   return rows
 
 
-def _prism_world(scene: _Scene, ref: Reference, g: int, pos: np.ndarray) -> Optional[np.ndarray]:
-  """The prism (6, 3), in the world frame, of heightfield geom g's triangle whose column holds
-  ``pos`` (as MuJoCo C splits the cell), or None where pos lies off the grid."""
-  mjm = scene.mjm
-  data = int(mjm.geom_dataid[g])
-  size = mjm.hfield_size[data]
-  nrow, ncol = int(mjm.hfield_nrow[data]), int(mjm.hfield_ncol[data])
-  rot = ref.xmat[g]
-  local = rot.T @ (np.asarray(pos, dtype=np.float64) - ref.xpos[g])
-  col = math.floor((local[0] + size[0]) / (2.0 * size[0] / (ncol - 1)))
-  row = math.floor((local[1] + size[1]) / (2.0 * size[1] / (nrow - 1)))
-  if not (0 <= row < nrow - 1 and 0 <= col < ncol - 1):
-    return None
-  prisms = exact.hfield_prisms(mjm, data, row, row + 1, col, col + 1)  # the cell's two triangles
-  inside = exact.in_triangle_xy(local, prisms[:, 0], prisms[:, 1], prisms[:, 2])
-  prism = prisms[int(np.argmax(inside))]
-  return ref.xpos[g] + prism @ rot.T
+def _triangle_of(scene: _Scene, ref: Reference, g: int, pos: np.ndarray) -> Optional[tuple[int, int, int]]:
+  """Heightfield geom g's triangle whose prism's column holds world point ``pos``
+  (exact.hfield_triangle_at), or None off the grid."""
+  local = ref.xmat[g].T @ (np.asarray(pos, dtype=np.float64) - ref.xpos[g])
+  return exact.hfield_triangle_at(scene.mjm, int(scene.mjm.geom_dataid[g]), local)
 
 
 def _prism_answered(scene: _Scene, ref: Reference, c: Contact, contacts: list[Contact]) -> bool:
@@ -294,23 +282,22 @@ def _prism_answered(scene: _Scene, ref: Reference, c: Contact, contacts: list[Co
   (convex) prism is no larger than along MuJoCo C's normal."""
   g = c.geom[0] if c.geom[0] in scene.hfield else c.geom[1]
   other = c.geom[1] if g == c.geom[0] else c.geom[0]
-  prism = _prism_world(scene, ref, g, c.pos)
-  if prism is None or other in scene.hfield:
+  triangle = _triangle_of(scene, ref, g, c.pos)
+  if triangle is None or other in scene.hfield:
     return False
+  row, col, t = triangle
+  local = exact.hfield_prisms(scene.mjm, int(scene.mjm.geom_dataid[g]), row, row + 1, col, col + 1)[t]
+  prism = ref.xpos[g] + local @ ref.xmat[g].T
 
   def overlap(contact: Contact) -> float:  # along the normal from the terrain into the geom
     n = np.asarray(contact.normal, dtype=np.float64) * (1.0 if contact.geom[0] == g else -1.0)
     n /= np.linalg.norm(n)
     return float((prism @ n).max()) + exact.support(scene.mjm, other, ref.xpos[other], ref.xmat[other], -n)
 
-  tol = TIE_REL * scene.size[other] + TIE_ABS
-  bound = overlap(c) + tol
+  bound = overlap(c) + TIE_REL * scene.size[other] + TIE_ABS
   pair = tuple(sorted(c.geom))
-  for o in contacts:
-    if tuple(sorted(o.geom)) == pair and np.array_equal(_prism_world(scene, ref, g, o.pos), prism):
-      if overlap(o) <= bound:
-        return True
-  return False
+  return any(tuple(sorted(o.geom)) == pair and _triangle_of(scene, ref, g, o.pos) == triangle and overlap(o) <= bound
+             for o in contacts)
 
 
 # a heightfield contact normal steeper than the grid's steepest facet by this much (its z in the

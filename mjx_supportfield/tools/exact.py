@@ -12,6 +12,7 @@ it has a distance but no support function.
 
 import math
 import weakref
+from typing import Optional
 
 import mujoco
 import numpy as np
@@ -316,17 +317,31 @@ def _prism_distances(prisms: np.ndarray, p: np.ndarray) -> np.ndarray:
   n *= np.sign(n[:, 2:3])  # upward
   below_top = np.einsum("ij,ij->i", n, p - a) <= 0.0
   above_base = p[2] >= prisms[:, 3, 2]
-  inside = below_top & above_base & in_triangle_xy(p, a, b, c)
+  inside = below_top & above_base & _in_triangle_xy(p, a, b, c)
   return np.where(inside, 0.0, d)
 
 
-def in_triangle_xy(p, a, b, c) -> np.ndarray:
+def _in_triangle_xy(p, a, b, c) -> np.ndarray:
   """Whether point p lies over each triangle (a[i], b[i], c[i]) seen along z (edges included)."""
   def edge(u, v):
     return (v[:, 0] - u[:, 0]) * (p[1] - u[:, 1]) - (v[:, 1] - u[:, 1]) * (p[0] - u[:, 0])
 
   e0, e1, e2 = edge(a, b), edge(b, c), edge(c, a)
   return ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
+
+
+def hfield_triangle_at(mjm: mujoco.MjModel, hid: int, p: np.ndarray) -> Optional[tuple[int, int, int]]:
+  """The triangle of heightfield hid over point p (geom frame), as (row, col, t): cell (row, col)
+  and its triangle t in hfield_prisms' order (0: {(r, c), (r + 1, c), (r + 1, c + 1)}); None
+  where p lies off the grid."""
+  size = mjm.hfield_size[hid].astype(np.float64)
+  nrow, ncol = int(mjm.hfield_nrow[hid]), int(mjm.hfield_ncol[hid])
+  col = math.floor((p[0] + size[0]) / (2.0 * size[0] / (ncol - 1)))
+  row = math.floor((p[1] + size[1]) / (2.0 * size[1] / (nrow - 1)))
+  if not (0 <= row < nrow - 1 and 0 <= col < ncol - 1):
+    return None
+  tops = hfield_prisms(mjm, hid, row, row + 1, col, col + 1)[:, :3]
+  return row, col, int(np.argmax(_in_triangle_xy(p, tops[:, 0], tops[:, 1], tops[:, 2])))
 
 
 def hfield_distance(mjm: mujoco.MjModel, hid: int, p: np.ndarray) -> float:

@@ -219,11 +219,13 @@ class Ground:
     inside = real_scenes.inside_static(self.mjm, centres, self.geom_xpos, self.geom_xmat, self.static,
                                        below_slab=False)
     if self.roots:
-      under = real_scenes.inside_static(self.mjm, centres, self.geom_xpos, self.geom_xmat, self.static)
       sunk = real_scenes.inside_static(self.mjm, d.xpos.numpy()[:, self.roots], self.geom_xpos, self.geom_xmat,
                                        self.static)
-      sunk = np.concatenate([sunk, np.zeros((len(sunk), 1), dtype=bool)], axis=1)  # column -1: no free root
-      inside |= under & sunk[:, self.root_column]
+      if sunk.any():  # only then can a geom below a slab count: test the geoms again there alone
+        sunk = np.concatenate([sunk, np.zeros((len(sunk), 1), dtype=bool)], axis=1)  # column -1: no free root
+        worlds = np.flatnonzero(sunk.any(axis=1))
+        under = real_scenes.inside_static(self.mjm, centres[worlds], self.geom_xpos, self.geom_xmat, self.static)
+        inside[worlds] |= under & sunk[worlds][:, self.root_column]
     if skip is not None:
       inside &= ~np.asarray(skip)[:, None]
     return [(int(w), self.mjm.geom(self.moving[i]).name) for w, i in zip(*np.nonzero(inside))]

@@ -135,22 +135,27 @@ def ground_level(mjm) -> float:
   return float(low) if np.isfinite(low) else 0.0
 
 
+def random_actions(env):
+  """Uniform random actions in [-1, 1] for every env."""
+  import torch
+
+  return torch.rand(env.action_space.shape, device=env.device) * 2.0 - 1.0
+
+
 def run(env, steps: int, warmup: int) -> dict:
   """Steps ``env`` with random actions; speed and the health of its worlds."""
-  import torch
   import warp as wp
 
   d = env.sim.wp_data
   floor = ground_level(env.sim.mj_model) - BELOW
   env.reset()
-  shape = env.action_space.shape
   ncon, below, nonfinite, overflow = [], np.zeros(env.num_envs, bool), np.zeros(env.num_envs, bool), 0
   t0 = None
   for i in range(warmup + steps):
     if i == warmup:
       wp.synchronize()
       t0 = time.perf_counter()
-    env.step(torch.rand(shape, device=env.device) * 2.0 - 1.0)
+    env.step(random_actions(env))
     if i >= warmup and (i - warmup) % 20 == 19:  # a host read now and then, outside the timed ratio's bulk
       ncon.append(int(d.nacon.numpy()[0]) / env.num_envs)
       xpos = d.xpos.numpy()[:, 1:, 2]
@@ -172,14 +177,12 @@ def profile(env, steps: int, top: int) -> dict:
   """GPU milliseconds per env step of ``steps`` more random-action steps, by kernel name."""
   import collections
 
-  import torch
   import warp as wp
 
-  shape = env.action_space.shape
   wp.timing_begin(cuda_filter=wp.TIMING_ALL)
   t0 = time.perf_counter()
   for _ in range(steps):
-    env.step(torch.rand(shape, device=env.device) * 2.0 - 1.0)
+    env.step(random_actions(env))
   wp.synchronize()
   wall = time.perf_counter() - t0
   per = collections.defaultdict(float)

@@ -15,7 +15,9 @@ After every chunk the run checks, over all worlds:
     its bound is its initial energy; an actuated robot's actuators add some, as they do in C;
   - no overflow bit in d.overflow, no dropped broad-phase pairs;
   - nothing through the ground: no moving collision geom's centre inside a static box, under a
-    static plane or under a heightfield's surface at two chunk ends in a row (in one episode). A
+    static plane or in a heightfield's slab (under its surface, above its base; below the slab
+    only for a robot whose trunk is under the surface: Ground.geoms_through) at two chunk ends
+    in a row (in one episode). A
     geom's centre inside the ground has sunk by more than its own radius (half its smallest side
     for a box), which no resting contact allows; a Go1 under random controls jams a calf that
     deep into a stair or a slope now and then in MuJoCo C too, and it comes out again

@@ -12,6 +12,12 @@ import numpy as np
 import warp as wp
 
 from mjx_supportfield.geometry.box_prism import box_axes_part
+from mjx_supportfield.geometry.box_prism import box_prism_contact
+from mjx_supportfield.stages.hfield_cells import Heightfield
+from mjx_supportfield.stages.hfield_cells import cell_corners
+from mjx_supportfield.stages.hfield_cells import cell_size
+from mjx_supportfield.stages.hfield_window import TerrainPair
+from mjx_supportfield.stages.hfield_window import _box_prism_answer
 from mjx_supportfield.types import Shape
 
 BAND = 0.002
@@ -95,3 +101,135 @@ def test_parted_pairs_are_apart_by_mujocos_distance():
       left += 1
       parted += int(part[i])
   assert left > 20 and parted > 0.5 * left, (parted, left)
+
+
+@wp.kernel(module="unique", enable_backward=False)
+def _box_prism_contact(top: wp.array2d(dtype=wp.vec3), pos: wp.array(dtype=wp.vec3), rot: wp.array(dtype=wp.mat33),
+                       half: wp.vec3, point_out: wp.array(dtype=wp.vec4), normal_out: wp.array(dtype=wp.vec3)):
+  i = wp.tid()
+  box = Shape()
+  box.gtype = BOX
+  box.pos = pos[i]
+  box.rot = rot[i]
+  box.size = half
+  box.mesh = -1
+  box.center = pos[i]
+  box.inflate = 0.0
+  point, normal = box_prism_contact(top[i, 0], top[i, 1], top[i, 2], BOTTOM, box, 1.0e-6)
+  point_out[i] = point
+  normal_out[i] = normal
+
+
+def _overlap(top, corners, n):
+  """The overlap of the prism and the box's corners along unit direction(s) n (rows)."""
+  verts = np.vstack([top, np.column_stack([top[:, :2], np.full(3, BOTTOM)])])
+  return (verts @ n.T).max(axis=0) - (corners @ n.T).min(axis=0)
+
+
+def test_penetration_is_the_least_overlap_and_mujocos_depth():
+  """The exact penetration: along its normal the two overlap by its depth, along no direction
+  by less (a dense sample of directions), and MuJoCo C's GJK/EPA (mj_geomDistance) gives the
+  same depth, or less where its EPA stopped short, never more. The point lies in both shapes
+  grown by the depth."""
+  n, half = 400, (0.02, 0.015, 0.004)
+  top, pos, rot = _cases(n, seed=5)
+  with wp.ScopedDevice("cpu"):
+    point = wp.zeros(n, dtype=wp.vec4)
+    normal = wp.zeros(n, dtype=wp.vec3)
+    wp.launch(_box_prism_contact, dim=n, inputs=[wp.array(top, dtype=wp.vec3), wp.array(pos, dtype=wp.vec3),
+                                                 wp.array(rot, dtype=wp.mat33), wp.vec3(*half)],
+              outputs=[point, normal])
+    point, normal = point.numpy().astype(float), normal.numpy().astype(float)
+  rng = np.random.default_rng(0)
+  directions = rng.normal(size=(20000, 3))
+  directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+  signs = np.array([[sx, sy, sz] for sz in (-1, 1) for sy in (-1, 1) for sx in (-1, 1)])
+  deep = same = 0
+  for i in range(n):
+    depth = point[i, 3]
+    if depth <= 1.0e-4:
+      continue
+    deep += 1
+    corners = pos[i] + signs * half @ rot[i].T
+    assert abs(_overlap(top[i], corners, normal[i][None])[0] - depth) < 1.0e-6, i
+    assert _overlap(top[i], corners, directions).min() >= depth - 1.0e-6, i
+    c_depth = -_distance(top[i], pos[i], rot[i], half)
+    assert c_depth <= depth + 1.0e-5, (i, c_depth, depth)
+    same += int(abs(c_depth - depth) < 1.0e-5)
+    local = rot[i].T @ (point[i, :3] - pos[i])
+    assert np.all(np.abs(local) <= np.array(half) + depth + 1.0e-6), i
+    assert point[i, 2] >= BOTTOM - depth - 1.0e-6, i
+  assert deep > 50 and same > 0.9 * deep, (same, deep)
+
+
+@wp.kernel(module="unique", enable_backward=False)
+def _stage_answer(data: wp.array(dtype=float), size: wp.vec4, pos: wp.vec3, rot: wp.mat33, half: wp.vec3,
+                  answers: wp.array(dtype=wp.vec4), normals: wp.array(dtype=wp.vec3), band: float,
+                  answer_out: wp.array(dtype=wp.vec4), normal_out: wp.array(dtype=wp.vec3)):
+  i = wp.tid()
+  hfield = Heightfield()
+  hfield.data = data
+  hfield.adr = 0
+  hfield.nrow = 2
+  hfield.ncol = 2
+  hfield.size = size
+  box = Shape()
+  box.gtype = BOX
+  box.pos = pos
+  box.rot = rot
+  box.size = half
+  box.mesh = -1
+  box.center = pos
+  box.inflate = 0.0
+  tp = TerrainPair()
+  tp.band = band
+  tp.lo = pos - wp.vec3(0.05)
+  tp.hi = pos + wp.vec3(0.05)
+  dx, dy = cell_size(hfield)
+  p00, p01, p10, p11, na, nb = cell_corners(hfield, dx, dy, 0, 0)
+  answer, normal = _box_prism_answer(hfield, box, tp, 0, p00, p01, p10, p11, answers[i], normals[i])
+  answer_out[i] = answer
+  normal_out[i] = normal
+
+
+def test_the_stage_takes_the_exact_answer_where_gjk_epas_cannot_be_right():
+  """A box prism's GJK/EPA answer (depth with the band) stands unless it cannot be right: none
+  while the two penetrate, deeper than the exact penetration, or a normal into the terrain
+  (float32 EPA's failures on a face resting on a prism); an answer only short of the exact depth
+  stands too (MuJoCo C's EPA stops short on the same prisms)."""
+  size = wp.vec4(0.05, 0.05, 0.02, 0.05)  # one cell 0.1 m wide, elevations up to 2 cm
+  data = wp.array([0.1, 0.6, 0.3, 0.9], dtype=float, device="cpu")
+  half = (0.03, 0.02, 0.01)
+  rot = np.eye(3)
+  pos = np.array([-0.02, 0.02, 0.014])  # over the first triangle, its lowest face into the slope
+  band = 0.001
+  top = np.array([[-0.05, -0.05, 0.002], [-0.05, 0.05, 0.006], [0.05, 0.05, 0.018]])
+  signs = np.array([[sx, sy, sz] for sz in (-1, 1) for sy in (-1, 1) for sx in (-1, 1)])
+  corners = pos + signs * np.array(half)
+  exact = -_distance(top, pos, rot, half)  # MuJoCo C's depth (the exact one, as the test above checks)
+  assert exact > 1.0e-3
+  up = np.cross(top[1] - top[0], top[2] - top[0])
+  up = up / np.linalg.norm(up) * np.sign(up[2])
+  point = [-0.03, 0.0, 0.005]
+  cases = [  # (answer, normal, stands)
+    ((*point, band + exact), up, True),  # right, along the triangle's normal
+    ((*point, band + 0.5 * exact), up, True),  # short: kept
+    ((0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), False),  # none
+    ((*point, band + 2.0 * exact), (0.0, 0.0, 1.0), False),  # deeper than the penetration
+    ((*point, band + 0.5 * exact), (0.0, 0.0, -1.0), False),  # into the terrain
+  ]
+  with wp.ScopedDevice("cpu"):
+    answers = wp.array([c[0] for c in cases], dtype=wp.vec4)
+    normals = wp.array([c[1] for c in cases], dtype=wp.vec3)
+    out = wp.zeros(len(cases), dtype=wp.vec4)
+    nout = wp.zeros(len(cases), dtype=wp.vec3)
+    wp.launch(_stage_answer, dim=len(cases), inputs=[data, size, wp.vec3(*pos), wp.mat33(*rot.ravel()),
+                                                     wp.vec3(*half), answers, normals, band], outputs=[out, nout])
+    out, nout = out.numpy(), nout.numpy()
+  for i, (answer, normal, stands) in enumerate(cases):
+    if stands:
+      np.testing.assert_allclose(out[i], answer, atol=1.0e-7)
+      np.testing.assert_allclose(nout[i], normal, atol=1.0e-7)
+    else:
+      assert abs(out[i, 3] - band - exact) < 2.0e-5, (i, out[i])
+      assert abs(_overlap(top, corners, nout[i][None].astype(float))[0] - exact) < 2.0e-5, i

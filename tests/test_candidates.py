@@ -8,6 +8,7 @@ what each keeps, merges, replaces and picks.
 import numpy as np
 import warp as wp
 
+from mjx_supportfield.geometry.mpr import MprResult
 from mjx_supportfield.stages.candidates import NCANDIDATE
 from mjx_supportfield.stages.candidates import TAG_DEEPEST
 from mjx_supportfield.stages.candidates import TAG_PRISM
@@ -18,6 +19,7 @@ from mjx_supportfield.stages.candidates import depth_at
 from mjx_supportfield.stages.candidates import empty_with_room
 from mjx_supportfield.stages.candidates import normal_at
 from mjx_supportfield.stages.candidates import pos_at
+from mjx_supportfield.stages.hfield_cells import prism_answer_kept
 
 
 @wp.kernel(module="unique", enable_backward=False)
@@ -108,3 +110,64 @@ def test_a_triangle_gives_one_contact_its_prisms_where_there_is_one():
   assert sorted(order) == [2, 3, 5]  # triangle 7's prism answer, triangle 9's deeper corner, the untagged
   _, _, _, _, order = _run(pos, depth, spacing=0.001, max_contacts=1, keep=0.0, tags=tags)
   assert sorted(order) == [2, 3, 5]  # beyond max_contacts by the same rule
+
+
+@wp.kernel(module="unique", enable_backward=False)
+def _answer_kept(cand_pos: wp.array(dtype=wp.vec3), cand_normal: wp.array(dtype=wp.vec3),
+                 cand_depth: wp.array(dtype=float), answer: wp.array(dtype=wp.vec4),
+                 normal: wp.array(dtype=wp.vec3), face: wp.vec3, one_per_prism: int,
+                 kept_out: wp.array(dtype=int)):
+  i = wp.tid()
+  c = empty_with_room(NCANDIDATE)
+  for k in range(cand_pos.shape[0]):
+    add_tagged(c, cand_pos[k], cand_normal[k], cand_depth[k], 1.0e-4, 0)
+  res = MprResult()
+  res.hit = 1
+  res.pos = wp.vec3(answer[i][0], answer[i][1], answer[i][2])
+  res.depth = answer[i][3]
+  res.normal = normal[i]
+  kept = prism_answer_kept(c, res, face, wp.vec3(0.0), 0.1, 0.1, 0, 1.0, 1.0e-6, one_per_prism == 1)
+  kept_out[i] = wp.where(kept, 1, 0)
+
+
+def _kept(cands, witnesses, normals, face=(0.0, 0.0, 1.0), one_per_prism=False, depth=0.004):
+  """prism_answer_kept of answers depth deep (their witnesses on the terrain, their normals) on
+  triangle 0 (x <= y seen along z) of a cell 0.1 m wide with its corner (0, 0) at the origin and
+  the triangle's normal ``face``, against candidates (pos, normal, depth)."""
+  answers = [(*(np.array(w) - 0.5 * depth * np.array(n)), depth) for w, n in zip(witnesses, normals)]
+  with wp.ScopedDevice("cpu"):
+    kept = wp.zeros(len(answers), dtype=int)
+    wp.launch(_answer_kept, dim=len(answers), inputs=[
+      wp.array([c[0] for c in cands], dtype=wp.vec3), wp.array([c[1] for c in cands], dtype=wp.vec3),
+      wp.array([c[2] for c in cands], dtype=float), wp.array(answers, dtype=wp.vec4),
+      wp.array(normals, dtype=wp.vec3), wp.vec3(*face), int(one_per_prism)], outputs=[kept])
+    return kept.numpy().tolist()
+
+
+def test_a_prism_answer_is_dropped_only_for_a_face_contact_over_its_own_triangle():
+  """A prism's answer along its triangle's normal is dropped where a plane-pass candidate over the
+  same triangle with that normal is as deep (B's face already rests there); one over a
+  neighbouring triangle in the same plane is another place of B's and leaves the answer. Its
+  witness must lie on the top face, or below it by no more than float32 rounding of the depth."""
+  up = (0.0, 0.0, 1.0)
+  over_it = [((0.03, 0.07, 0.002), up, 0.005)]
+  beside = [((0.07, 0.02, 0.002), up, 0.005)]  # over the cell's other triangle
+  on_top = (0.02, 0.06, 0.0)
+  assert _kept(over_it, [on_top], [up]) == [0]
+  assert _kept(beside, [on_top], [up]) == [1]
+  rounded, under = (0.02, 0.06, -0.005 * 0.004), (0.02, 0.06, -0.05 * 0.004)
+  assert _kept(beside, [rounded, under], [up, up]) == [1, 0]
+
+
+def test_a_box_prism_answer_tilted_across_the_top_edge_stands():
+  """GJK/EPA's answer for a box's or a mesh's prism (one a prism, as MuJoCo C's) may tilt more
+  than 60 degrees from its steep triangle's normal where it points up by 60 degrees or less (B's
+  edge across the triangle's top edge); an MPR answer that tilted, or any answer within 60
+  degrees of horizontal, is a side wall's and dropped."""
+  far = [((0.5, 0.5, 0.0), (1.0, 0.0, 0.0), 0.0001)]
+  face = (0.0, -0.8, 0.6)  # a triangle 53 degrees steep; the witness on its plane through the origin
+  witness = (0.02, 0.06, 0.08)
+  across = (0.0, 0.5, 0.8660254)  # 84 degrees from the face normal, 30 from vertical
+  sideways = (0.0, 0.95, 0.3122499)  # 72 degrees from vertical
+  assert _kept(far, [witness, witness], [across, sideways], face, one_per_prism=True) == [1, 0]
+  assert _kept(far, [witness, witness], [across, sideways], face, one_per_prism=False) == [0, 0]

@@ -9,6 +9,13 @@ the prism's (its top edges, base edges and vertical edges), so that a box's pris
 only when no axis parts them by the band, and most prisms under a box lying on rough terrain
 (whose GJK runs found nothing) are left out.
 
+The same axes, with the prism's own faces, give the exact penetration of a box and a prism
+(``box_prism_penetration``): of two convex polytopes, the least overlap over those axes is their
+penetration depth. ``box_prism_contact`` adds the point EPA would end on, between the two shapes'
+deepest features along that axis. MuJoCo Warp's float32 GJK/EPA on a terrain prism that a box's
+face rests on is ill-conditioned and can return a wrong answer (deeper than the penetration, a
+normal into the terrain, or none); the heightfield stage takes this one there instead.
+
 This module launches nothing.
 """
 
@@ -19,6 +26,7 @@ from mjx_supportfield.types import Shape
 mat63 = wp.types.matrix(shape=(6, 3), dtype=float)
 
 NAXIS = 24  # the box's 3 axes, then 7 prism edge directions x the box's 3 edge directions
+NFACE = 5  # the prism's own face normals: its top, its three side walls, its base
 PARALLEL = 1.0e-6  # sine below which a prism edge and a box edge are parallel (no axis of their own)
 
 
@@ -85,3 +93,171 @@ def box_axes_part(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box: Sha
         return True
   return False
 
+
+
+@wp.func
+def _prism_face(p: mat63, k: int) -> wp.vec3:
+  """Unit outward normal of the prism's face k: 0 its top, 1-3 its side walls, 4 its base."""
+  if k == 0:
+    n = wp.cross(p[1] - p[0], p[2] - p[0])
+    return wp.normalize(wp.where(n[2] < 0.0, -n, n))
+  if k == 4:
+    return wp.vec3(0.0, 0.0, -1.0)
+  e = p[k % 3] - p[k - 1]
+  n = wp.vec3(e[1], -e[0], 0.0)
+  other = p[(k + 1) % 3]
+  return wp.normalize(wp.where(wp.dot(n, other - p[k - 1]) > 0.0, -n, n))
+
+
+@wp.func
+def box_prism_penetration(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box: Shape) -> wp.vec4:
+  """The least overlap of the box and the prism under triangle (t0, t1, t2) down to z = bottom,
+  over the box's axes, the prism's faces and the edge pairs' axes (both in one frame): the unit
+  normal from the prism to the box (x, y, z) and the overlap along it (w; 0 or less: apart)."""
+  p = _prism_vertices(t0, t1, t2, bottom)
+  best = wp.vec4(0.0, 0.0, 1.0, 1.0e30)
+  for k in range(NAXIS + NFACE):
+    u = wp.vec3(0.0)
+    if k < NAXIS:
+      u = _axis(p, box.rot, k)
+    else:
+      u = _prism_face(p, k - NAXIS)
+    if wp.length_sq(u) > 0.0:
+      lo = wp.dot(p[0], u)
+      hi = lo
+      for i in range(1, 6):
+        x = wp.dot(p[i], u)
+        lo = wp.min(lo, x)
+        hi = wp.max(hi, x)
+      centre = wp.dot(box.pos, u)
+      radius = float(0.0)
+      for i in range(3):
+        radius += box.size[i] * wp.abs(wp.dot(_column(box.rot, i), u))
+      up = hi - (centre - radius)  # the box pushed out along +u
+      down = centre + radius - lo  # along -u
+      if up < best[3]:
+        best = wp.vec4(u[0], u[1], u[2], up)
+      if down < best[3]:
+        best = wp.vec4(-u[0], -u[1], -u[2], down)
+  return best
+
+
+@wp.func
+def box_deepest_point(box: Shape, n: wp.vec3) -> wp.vec3:
+  """The box's corner deepest along -n (its support point along -n)."""
+  x = box.pos
+  for i in range(3):
+    axis = _column(box.rot, i)
+    x -= wp.where(wp.dot(axis, n) > 0.0, 1.0, -1.0) * box.size[i] * axis
+  return x
+
+
+@wp.func
+def _box_corner(box: Shape, i: int) -> wp.vec3:
+  """Corner i (bits 0-2: the sign along the box's axes 0-2) of the box."""
+  x = box.pos
+  for k in range(3):
+    x += wp.where(((i >> k) & 1) == 1, 1.0, -1.0) * box.size[k] * _column(box.rot, k)
+  return x
+
+
+@wp.func
+def _in_box(box: Shape, x: wp.vec3, tol: float) -> bool:
+  local = wp.transpose(box.rot) @ (x - box.pos)
+  return (wp.abs(local[0]) <= box.size[0] + tol and wp.abs(local[1]) <= box.size[1] + tol
+          and wp.abs(local[2]) <= box.size[2] + tol)
+
+
+@wp.func
+def _in_prism(p: mat63, x: wp.vec3, tol: float) -> bool:
+  """Whether x lies in the prism grown by tol (its side walls and top plane, then its base)."""
+  for k in range(1, 5):
+    on = wp.where(k == 4, p[3], p[k - 1])  # a vertex of face k
+    if wp.dot(x - on, _prism_face(p, k)) > tol:
+      return False
+  top = _prism_face(p, 0)
+  return wp.dot(x - p[0], top) <= tol
+
+
+@wp.func
+def _closest_of_segments(a0: wp.vec3, a1: wp.vec3, b0: wp.vec3, b1: wp.vec3) -> wp.vec3:
+  """The midpoint of the closest points of segments a0-a1 and b0-b1 (not parallel)."""
+  d1 = a1 - a0
+  d2 = b1 - b0
+  r = a0 - b0
+  a = wp.dot(d1, d1)
+  e = wp.dot(d2, d2)
+  b = wp.dot(d1, d2)
+  c = wp.dot(d1, r)
+  f = wp.dot(d2, r)
+  denom = wp.max(a * e - b * b, 1.0e-30)
+  s = wp.clamp((b * f - c * e) / denom, 0.0, 1.0)
+  t = wp.clamp((b * s + f) / wp.max(e, 1.0e-30), 0.0, 1.0)
+  s = wp.clamp((b * t - c) / wp.max(a, 1.0e-30), 0.0, 1.0)
+  return 0.5 * (a0 + s * d1 + b0 + t * d2)
+
+
+@wp.func
+def box_prism_contact(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box: Shape,
+                      tol: float) -> tuple[wp.vec4, wp.vec3]:
+  """The penetration of the box and the prism under triangle (t0, t1, t2) down to z = bottom
+  (box_prism_penetration) and its contact point, midway between the two shapes' deepest
+  features along the normal (those within tol of the deepest): a corner of either where one
+  is alone (the witness EPA ends on), the closest points of two edges, else the mean of the
+  features' points that lie in both shapes (a face resting on a face: any point of their
+  overlap is EPA's). Returns the point and the overlap (w), and the normal from the prism to
+  the box."""
+  pen = box_prism_penetration(t0, t1, t2, bottom, box)
+  n = wp.vec3(pen[0], pen[1], pen[2])
+  depth = pen[3]
+  p = _prism_vertices(t0, t1, t2, bottom)
+  low = float(1.0e30)
+  for i in range(8):
+    low = wp.min(low, wp.dot(_box_corner(box, i), n))
+  high = float(-1.0e30)
+  for i in range(6):
+    high = wp.max(high, wp.dot(p[i], n))
+  nbox = int(0)
+  box_sum = wp.vec3(0.0)
+  box_a = wp.vec3(0.0)
+  box_b = wp.vec3(0.0)
+  for i in range(8):
+    x = _box_corner(box, i)
+    if wp.dot(x, n) <= low + tol:
+      box_b = wp.where(nbox == 1, x, box_b)
+      box_a = wp.where(nbox == 0, x, box_a)
+      box_sum += x
+      nbox += 1
+  nprism = int(0)
+  prism_sum = wp.vec3(0.0)
+  prism_a = wp.vec3(0.0)
+  prism_b = wp.vec3(0.0)
+  for i in range(6):
+    if wp.dot(p[i], n) >= high - tol:
+      prism_b = wp.where(nprism == 1, p[i], prism_b)
+      prism_a = wp.where(nprism == 0, p[i], prism_a)
+      prism_sum += p[i]
+      nprism += 1
+  half = 0.5 * depth * n
+  pos = 0.5 * (box_sum / float(nbox) + prism_sum / float(nprism))
+  if nbox == 1:
+    pos = box_a + half
+  elif nprism == 1:
+    pos = prism_a - half
+  elif nbox == 2 and nprism == 2:
+    pos = _closest_of_segments(box_a, box_b, prism_a, prism_b)
+  else:
+    shared = wp.vec3(0.0)
+    nshared = int(0)
+    for i in range(8):
+      x = _box_corner(box, i)
+      if wp.dot(x, n) <= low + tol and _in_prism(p, x + half, tol + depth):
+        shared += x + half
+        nshared += 1
+    for i in range(6):
+      if wp.dot(p[i], n) >= high - tol and _in_box(box, p[i] - half, tol + depth):
+        shared += p[i] - half
+        nshared += 1
+    if nshared > 0:
+      pos = shared / float(nshared)
+  return wp.vec4(pos[0], pos[1], pos[2], depth), n

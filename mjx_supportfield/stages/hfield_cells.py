@@ -20,6 +20,7 @@ from mjx_supportfield.geometry.support import support_funcs
 from mjx_supportfield.stages.candidates import Candidates
 from mjx_supportfield.stages.candidates import depth_at
 from mjx_supportfield.stages.candidates import normal_at
+from mjx_supportfield.stages.candidates import pos_at
 from mjx_supportfield.types import MeshSupport
 from mjx_supportfield.types import Shape
 
@@ -158,28 +159,52 @@ def outside_walls_func(mode: int) -> wp.Function:
   return _outside_walls
 
 
+# how far below the top plane, as a fraction of its depth, a prism answer's witness may lie (float32
+# rounding of MPR's and GJK/EPA's points grows with the depth) and still be the top face's
+WITNESS_ROUNDING = 0.01
+# how far outside a triangle (a fraction of the cell's size) a point still counts as over it
+OVER_SLACK = 1.0e-4
+
+
 @wp.func
-def prism_answer_kept(c: wp.ref[Candidates], res: MprResult, n: wp.vec3, v0: wp.vec3, scale: float, tol: float,
-                       one_per_prism: bool) -> bool:
-  """Whether a prism's MPR answer is an edge of B dipping into the top face (normal n through
-  v0): the prism's witness point lies on the top triangle (answers through the side walls,
-  which are inside the terrain, are dropped) and no plane-pass candidate with its normal is as
-  deep. With ``one_per_prism`` (GJK/EPA's answers for a box or a mesh, whose points MuJoCo C
-  keeps one a prism) one such candidate is allowed: it is B's single deepest point under the
-  triangle's plane, and EPA's point lies elsewhere on the part of B resting there; two or more
-  are corners of a face lying flat on the plane, which they already span."""
-  if wp.dot(res.normal, n) < 0.5:
+def prism_answer_kept(c: wp.ref[Candidates], res: MprResult, n: wp.vec3, v0: wp.vec3, dx: float, dy: float, t: int,
+                      scale: float, tol: float, one_per_prism: bool) -> bool:
+  """Whether a prism's MPR answer is an edge of B dipping into the top face (normal n; v0 the
+  cell's corner (r, c), t the triangle): the prism's witness point lies on the top triangle
+  (answers through the side walls, which are inside the terrain, are dropped; the witness may
+  sit below the plane by float32 rounding, which grows with the depth) and no plane-pass
+  candidate over the same triangle with its normal is as deep (one over a neighbouring triangle
+  as steep is another place of B's). With ``one_per_prism`` (GJK/EPA's answers for a box or a
+  mesh, whose points MuJoCo C keeps one a prism) one such candidate is allowed: it is B's single
+  deepest point under the triangle's plane, and EPA's point lies elsewhere on the part of B
+  resting there; two or more are corners of a face lying flat on the plane, which they already
+  span. Such an answer may also tilt more than 60 degrees from the triangle's normal where it
+  still points up by 60 degrees or less (B's edge across the triangle's top edge), as C keeps
+  it."""
+  if wp.dot(res.normal, n) < 0.5 and (not one_per_prism or res.normal[2] < 0.5):
     return False
   witness = res.pos + 0.5 * res.depth * res.normal
-  if wp.dot(n, witness - v0) < -1.0e-6 * scale:
+  if wp.dot(n, witness - v0) < -(1.0e-6 * scale + WITNESS_ROUNDING * res.depth):
     return False
   allowed = wp.where(one_per_prism, 1, 0)
   for k in range(c.n):
     if wp.dot(normal_at(c, k), res.normal) > 0.9999 and depth_at(c, k) >= res.depth - tol * scale:
-      allowed -= 1
-      if allowed < 0:
-        return False
+      if one_per_prism or over_triangle(pos_at(c, k), v0, dx, dy, t):
+        allowed -= 1
+        if allowed < 0:
+          return False
   return True
+
+
+@wp.func
+def over_triangle(p: wp.vec3, v0: wp.vec3, dx: float, dy: float, t: int) -> bool:
+  """Whether p lies over triangle t (0: (r, c), (r + 1, c), (r + 1, c + 1); 1: the other) of the
+  cell whose corner (r, c) is v0, or within OVER_SLACK of a cell's size of it."""
+  u = (p[0] - v0[0]) / dx
+  v = (p[1] - v0[1]) / dy
+  if u < -OVER_SLACK or v < -OVER_SLACK or u > 1.0 + OVER_SLACK or v > 1.0 + OVER_SLACK:
+    return False
+  return wp.where(t == 0, v >= u - OVER_SLACK, v <= u + OVER_SLACK)
 
 
 @wp.func

@@ -20,6 +20,7 @@ from mujoco_warp._src.collision_gjk import ccd
 from mujoco_warp._src.types import GeomType
 
 from mjx_supportfield.geometry.box_prism import box_axes_part
+from mjx_supportfield.geometry.box_prism import box_prism_contact
 from mjx_supportfield.geometry.mpr import MprResult
 from mjx_supportfield.geometry.mpr import MprSettings
 from mjx_supportfield.geometry.mpr import mpr_funcs
@@ -225,6 +226,14 @@ def ccd_geom(ccd_in: PrismCcd, geom_type: wp.array(dtype=int), geom_dataid: wp.a
   return g
 
 
+# how much deeper than a box's exact penetration of a prism (times the pair's length scale) a
+# GJK/EPA answer may be (float32 rounding) before the exact answer replaces it (_box_prism_answer)
+EXACT_SLACK = 1.0e-4
+# how close (times the same scale) two corners' depths along the exact normal must be to count as
+# one feature of the box or the prism (a face, an edge) for the exact answer's point
+EXACT_FEATURE = 1.0e-5
+
+
 @wp.func
 def job_ccd(hfield: Heightfield, bgeom: Geom, btype: int, tp: TerrainPair, code: int, ccd_in: PrismCcd, row: int,
              worldid: int, overflow_out: wp.array(dtype=int)) -> tuple[wp.vec4, wp.vec3]:
@@ -253,6 +262,27 @@ def job_ccd(hfield: Heightfield, bgeom: Geom, btype: int, tp: TerrainPair, code:
 
 
 @wp.func
+def _box_prism_answer(hfield: Heightfield, b: Shape, tp: TerrainPair, job: int, p00: wp.vec3, p01: wp.vec3,
+                      p10: wp.vec3, p11: wp.vec3, answer: wp.vec4, normal: wp.vec3) -> tuple[wp.vec4, wp.vec3]:
+  """A box prism's GJK/EPA answer, or the exact one (box_prism_contact) where GJK/EPA's cannot be
+  right: none where the two penetrate, one deeper than their exact penetration, or a normal into
+  the terrain. MuJoCo Warp's float32 GJK/EPA on a prism a box's face rests on is ill-conditioned
+  (the last bits of the input move its answer by millimetres) and returns such answers, a normal
+  straight up or down with a wrong depth among them. An answer only short of the exact depth is
+  kept: MuJoCo C's EPA stops short on many of the same prisms, at the same places, and the exact
+  answer there would move the contact off C's."""
+  dx, dy = cell_size(hfield)
+  scale = _scale(tp, dx, dy)
+  exact, n = box_prism_contact(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -hfield.size[3], b,
+                               EXACT_FEATURE * scale)
+  if exact[3] <= 0.0:
+    return answer, normal
+  if answer[3] > tp.band and answer[3] - tp.band <= exact[3] + EXACT_SLACK * scale and normal[2] >= 0.0:
+    return answer, normal
+  return wp.vec4(exact[0], exact[1], exact[2], exact[3] + tp.band), n
+
+
+@wp.func
 def _through_border(hfield: Heightfield, r: int, c: int, normal: wp.vec3) -> bool:
   """Whether a prism's answer leaves through the heightfield's outer side wall (a cell of its
   first or last row or column, the normal within 60° of that wall's outward direction). The
@@ -278,16 +308,22 @@ def _tag(hfield: Heightfield, b: Shape, r: int, c: int, t: int, source: int) -> 
 @wp.func
 def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: wp.ref[Candidates], code: int,
                     answer: wp.vec4, normal: wp.vec3, spacing: float, tol: float):
-  """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to ``cands``,
+  """Adds MPR job ``code``'s answer (position, depth; depth 0 when it found nothing) to ``cands``
+  (a box prism's GJK/EPA answer checked against the exact one, _box_prism_answer),
   unless it is a prism's answer through a side wall or one the face contacts
   already hold (prism_answer_kept), or a point's with a normal into the terrain or between
   two faces that hold B's contacts (fold_answer_kept)."""
-  if answer[3] <= 0.0:
+  box_prism = code % NJOB < 2 and uses_ccd(b, code) and b.gtype == GeomType.BOX
+  if answer[3] <= 0.0 and not box_prism:
     return
   dx, dy = cell_size(hfield)
   job = code % NJOB
   r, c = window_cell(tp, code // NJOB)
   p00, p01, p10, p11, na, nb = cell_corners(hfield, dx, dy, r, c)
+  if box_prism:
+    answer, normal = _box_prism_answer(hfield, b, tp, job, p00, p01, p10, p11, answer, normal)
+    if answer[3] <= 0.0:
+      return
   res = MprResult()
   res.hit = 1
   res.depth = answer[3]
@@ -295,7 +331,7 @@ def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: wp.ref
   res.normal = normal
   if job < 2:
     if not (_through_border(hfield, r, c, normal)
-            or prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, _scale(tp, dx, dy), tol,
+            or prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, dx, dy, job, _scale(tp, dx, dy), tol,
                                  uses_ccd(b, code))):
       return
   elif wp.dot(normal, na + nb) <= 0.0:

@@ -25,18 +25,24 @@ BOTTOM = -0.05
 BOX = wp.constant(int(mujoco.mjtGeom.mjGEOM_BOX))
 
 
+@wp.func
+def _box(pos: wp.vec3, rot: wp.mat33, half: wp.vec3) -> Shape:
+  box = Shape()
+  box.gtype = BOX
+  box.pos = pos
+  box.rot = rot
+  box.size = half
+  box.mesh = -1
+  box.center = pos
+  box.inflate = 0.0
+  return box
+
+
 @wp.kernel(module="unique", enable_backward=False)
 def _box_axes_part(top: wp.array2d(dtype=wp.vec3), pos: wp.array(dtype=wp.vec3), rot: wp.array(dtype=wp.mat33),
                    half: wp.vec3, band: float, part_out: wp.array(dtype=int)):
   i = wp.tid()
-  box = Shape()
-  box.gtype = BOX
-  box.pos = pos[i]
-  box.rot = rot[i]
-  box.size = half
-  box.mesh = -1
-  box.center = pos[i]
-  box.inflate = 0.0
+  box = _box(pos[i], rot[i], half)
   part_out[i] = wp.where(box_axes_part(top[i, 0], top[i, 1], top[i, 2], BOTTOM, box, band), 1, 0)
 
 
@@ -107,14 +113,7 @@ def test_parted_pairs_are_apart_by_mujocos_distance():
 def _box_prism_contact(top: wp.array2d(dtype=wp.vec3), pos: wp.array(dtype=wp.vec3), rot: wp.array(dtype=wp.mat33),
                        half: wp.vec3, point_out: wp.array(dtype=wp.vec4), normal_out: wp.array(dtype=wp.vec3)):
   i = wp.tid()
-  box = Shape()
-  box.gtype = BOX
-  box.pos = pos[i]
-  box.rot = rot[i]
-  box.size = half
-  box.mesh = -1
-  box.center = pos[i]
-  box.inflate = 0.0
+  box = _box(pos[i], rot[i], half)
   point, normal = box_prism_contact(top[i, 0], top[i, 1], top[i, 2], BOTTOM, box, 1.0e-6)
   point_out[i] = point
   normal_out[i] = normal
@@ -173,14 +172,7 @@ def _stage_answer(data: wp.array(dtype=float), size: wp.vec4, pos: wp.vec3, rot:
   hfield.nrow = 2
   hfield.ncol = 2
   hfield.size = size
-  box = Shape()
-  box.gtype = BOX
-  box.pos = pos
-  box.rot = rot
-  box.size = half
-  box.mesh = -1
-  box.center = pos
-  box.inflate = 0.0
+  box = _box(pos, rot, half)
   tp = TerrainPair()
   tp.band = band
   tp.lo = pos - wp.vec3(0.05)

@@ -71,6 +71,21 @@ def _axis(p: mat63, rot: wp.mat33, k: int) -> wp.vec3:
 
 
 @wp.func
+def _extents(p: mat63, box: Shape, u: wp.vec3) -> wp.vec4:
+  """Along u: the prism's lowest and highest vertex, the box's centre and its half extent."""
+  lo = wp.dot(p[0], u)
+  hi = lo
+  for i in range(1, 6):
+    x = wp.dot(p[i], u)
+    lo = wp.min(lo, x)
+    hi = wp.max(hi, x)
+  radius = float(0.0)
+  for i in range(3):
+    radius += box.size[i] * wp.abs(wp.dot(_column(box.rot, i), u))
+  return wp.vec4(lo, hi, wp.dot(box.pos, u), radius)
+
+
+@wp.func
 def box_axes_part(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box: Shape, band: float) -> bool:
   """Whether an axis of the box, or of an edge of the box's and an edge of the prism's under
   triangle (t0, t1, t2) down to z = bottom, parts the two by ``band`` or more (both in one
@@ -79,20 +94,10 @@ def box_axes_part(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box: Sha
   for k in range(NAXIS):
     u = _axis(p, box.rot, k)
     if wp.length_sq(u) > 0.0:
-      lo = wp.dot(p[0], u)
-      hi = lo
-      for i in range(1, 6):
-        x = wp.dot(p[i], u)
-        lo = wp.min(lo, x)
-        hi = wp.max(hi, x)
-      centre = wp.dot(box.pos, u)
-      radius = float(0.0)
-      for i in range(3):
-        radius += box.size[i] * wp.abs(wp.dot(_column(box.rot, i), u))
-      if centre - radius - hi >= band or lo - centre - radius >= band:
+      e = _extents(p, box, u)  # lo, hi, centre, radius
+      if e[2] - e[3] - e[1] >= band or e[0] - e[2] - e[3] >= band:
         return True
   return False
-
 
 
 @wp.func
@@ -123,18 +128,9 @@ def box_prism_penetration(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, 
     else:
       u = _prism_face(p, k - NAXIS)
     if wp.length_sq(u) > 0.0:
-      lo = wp.dot(p[0], u)
-      hi = lo
-      for i in range(1, 6):
-        x = wp.dot(p[i], u)
-        lo = wp.min(lo, x)
-        hi = wp.max(hi, x)
-      centre = wp.dot(box.pos, u)
-      radius = float(0.0)
-      for i in range(3):
-        radius += box.size[i] * wp.abs(wp.dot(_column(box.rot, i), u))
-      up = hi - (centre - radius)  # the box pushed out along +u
-      down = centre + radius - lo  # along -u
+      e = _extents(p, box, u)
+      up = e[1] - (e[2] - e[3])  # the box pushed out along +u (e: lo, hi, centre, radius)
+      down = e[2] + e[3] - e[0]  # along -u
       if up < best[3]:
         best = wp.vec4(u[0], u[1], u[2], up)
       if down < best[3]:

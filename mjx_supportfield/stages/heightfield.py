@@ -54,7 +54,8 @@ every other candidate that penetrates: each is a distinct terrain feature inside
 peak or ridge under a face, a corner in a triangle), as MuJoCo's one contact per triangle prism
 is, and a geom lying on rough terrain rests on all of them, not on the few that spread widest
 (``max_contacts`` = 1 still writes one). A box or a mesh gets one contact a triangle, as MuJoCo C
-gets one a prism: the prism's GJK/EPA answer where it was kept, else the deepest of the box's
+gets one a prism: the prism's GJK/EPA answer where it was kept (a box's gives way to the exact
+answer where it cannot be right: hfield_window._box_prism_answer), else the deepest of the box's
 corners or the mesh's hull vertices under that triangle and B's deepest point under its plane
 (a face lying on a triangle is one contact, not one a corner). A geom over more than MAX_CELLS
 cells keeps the cells nearest its centre and sets ``OverflowType.HFIELD`` (with a printed

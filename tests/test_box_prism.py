@@ -4,7 +4,9 @@ by the box's axes and the edge pairs' cross products, against MuJoCo C's own GJK
 
 Random triangles and box poses, from apart to a few centimetres deep: a pair the axes part must
 be at least the band apart by C's distance (the test only drops work GJK/EPA would find nothing
-in), and most pairs apart that the prism's own faces do not part are parted.
+in), and most pairs apart that the prism's own faces do not part are parted. The same axes with
+the prism's faces give the exact penetration (box_prism_contact), which C's depth matches, and
+the heightfield stage takes it where a box prism's GJK/EPA answer cannot be right.
 """
 
 import mujoco

@@ -20,6 +20,7 @@ This module launches nothing.
 """
 
 import warp as wp
+from mujoco_warp._src.math import closest_segment_to_segment_points
 
 from mjx_supportfield.types import Shape
 
@@ -139,16 +140,6 @@ def box_prism_penetration(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, 
 
 
 @wp.func
-def box_deepest_point(box: Shape, n: wp.vec3) -> wp.vec3:
-  """The box's corner deepest along -n (its support point along -n)."""
-  x = box.pos
-  for i in range(3):
-    axis = _column(box.rot, i)
-    x -= wp.where(wp.dot(axis, n) > 0.0, 1.0, -1.0) * box.size[i] * axis
-  return x
-
-
-@wp.func
 def _box_corner(box: Shape, i: int) -> wp.vec3:
   """Corner i (bits 0-2: the sign along the box's axes 0-2) of the box."""
   x = box.pos
@@ -173,24 +164,6 @@ def _in_prism(p: mat63, x: wp.vec3, tol: float) -> bool:
       return False
   top = _prism_face(p, 0)
   return wp.dot(x - p[0], top) <= tol
-
-
-@wp.func
-def _closest_of_segments(a0: wp.vec3, a1: wp.vec3, b0: wp.vec3, b1: wp.vec3) -> wp.vec3:
-  """The midpoint of the closest points of segments a0-a1 and b0-b1 (not parallel)."""
-  d1 = a1 - a0
-  d2 = b1 - b0
-  r = a0 - b0
-  a = wp.dot(d1, d1)
-  e = wp.dot(d2, d2)
-  b = wp.dot(d1, d2)
-  c = wp.dot(d1, r)
-  f = wp.dot(d2, r)
-  denom = wp.max(a * e - b * b, 1.0e-30)
-  s = wp.clamp((b * f - c * e) / denom, 0.0, 1.0)
-  t = wp.clamp((b * s + f) / wp.max(e, 1.0e-30), 0.0, 1.0)
-  s = wp.clamp((b * t - c) / wp.max(a, 1.0e-30), 0.0, 1.0)
-  return 0.5 * (a0 + s * d1 + b0 + t * d2)
 
 
 @wp.func
@@ -241,7 +214,8 @@ def box_prism_contact(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box:
   elif nprism == 1:
     pos = prism_a - half
   elif nbox == 2 and nprism == 2:
-    pos = _closest_of_segments(box_a, box_b, prism_a, prism_b)
+    on_box, on_prism = closest_segment_to_segment_points(box_a, box_b, prism_a, prism_b)
+    pos = 0.5 * (on_box + on_prism)
   else:
     shared = wp.vec3(0.0)
     nshared = int(0)

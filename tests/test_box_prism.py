@@ -20,6 +20,7 @@ from mjx_supportfield.stages.hfield_cells import cell_corners
 from mjx_supportfield.stages.hfield_cells import cell_size
 from mjx_supportfield.stages.hfield_window import TerrainPair
 from mjx_supportfield.stages.hfield_window import _box_prism_answer
+from mjx_supportfield.stages.hfield_window import _scale
 from mjx_supportfield.types import Shape
 
 BAND = 0.002
@@ -181,7 +182,7 @@ def _stage_answer(data: wp.array(dtype=float), size: wp.vec4, pos: wp.vec3, rot:
   tp.hi = pos + wp.vec3(0.05)
   dx, dy = cell_size(hfield)
   p00, p01, p10, p11, na, nb = cell_corners(hfield, dx, dy, 0, 0)
-  answer, normal = _box_prism_answer(hfield, box, tp, 0, p00, p01, p10, p11, answers[i], normals[i])
+  answer, normal = _box_prism_answer(hfield, box, tp, 0, p00, p01, p10, p11, _scale(tp, dx, dy), answers[i], normals[i])
   answer_out[i] = answer
   normal_out[i] = normal
 

@@ -22,6 +22,7 @@ This module launches nothing.
 import warp as wp
 from mujoco_warp._src.math import closest_segment_to_segment_points
 
+from mjx_supportfield.geometry.support import box_corner
 from mjx_supportfield.types import Shape
 
 mat63 = wp.types.matrix(shape=(6, 3), dtype=float)
@@ -140,15 +141,6 @@ def box_prism_penetration(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, 
 
 
 @wp.func
-def _box_corner(box: Shape, i: int) -> wp.vec3:
-  """Corner i (bits 0-2: the sign along the box's axes 0-2) of the box."""
-  x = box.pos
-  for k in range(3):
-    x += wp.where(((i >> k) & 1) == 1, 1.0, -1.0) * box.size[k] * _column(box.rot, k)
-  return x
-
-
-@wp.func
 def _in_box(box: Shape, x: wp.vec3, tol: float) -> bool:
   local = wp.transpose(box.rot) @ (x - box.pos)
   return (wp.abs(local[0]) <= box.size[0] + tol and wp.abs(local[1]) <= box.size[1] + tol
@@ -180,18 +172,15 @@ def box_prism_contact(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box:
   n = wp.vec3(pen[0], pen[1], pen[2])
   depth = pen[3]
   p = _prism_vertices(t0, t1, t2, bottom)
-  low = float(1.0e30)
-  for i in range(8):
-    low = wp.min(low, wp.dot(_box_corner(box, i), n))
-  high = float(-1.0e30)
-  for i in range(6):
-    high = wp.max(high, wp.dot(p[i], n))
+  e = _extents(p, box, n)
+  low = e[2] - e[3]  # the box's deepest along -n
+  high = e[1]  # the prism's along n
   nbox = int(0)
   box_sum = wp.vec3(0.0)
   box_a = wp.vec3(0.0)
   box_b = wp.vec3(0.0)
   for i in range(8):
-    x = _box_corner(box, i)
+    x = box_corner(box, i)
     if wp.dot(x, n) <= low + tol:
       box_b = wp.where(nbox == 1, x, box_b)
       box_a = wp.where(nbox == 0, x, box_a)
@@ -220,7 +209,7 @@ def box_prism_contact(t0: wp.vec3, t1: wp.vec3, t2: wp.vec3, bottom: float, box:
     shared = wp.vec3(0.0)
     nshared = int(0)
     for i in range(8):
-      x = _box_corner(box, i)
+      x = box_corner(box, i)
       if wp.dot(x, n) <= low + tol and _in_prism(p, x + half, tol + depth):
         shared += x + half
         nshared += 1

@@ -263,16 +263,15 @@ def job_ccd(hfield: Heightfield, bgeom: Geom, btype: int, tp: TerrainPair, code:
 
 @wp.func
 def _box_prism_answer(hfield: Heightfield, b: Shape, tp: TerrainPair, job: int, p00: wp.vec3, p01: wp.vec3,
-                      p10: wp.vec3, p11: wp.vec3, answer: wp.vec4, normal: wp.vec3) -> tuple[wp.vec4, wp.vec3]:
+                      p10: wp.vec3, p11: wp.vec3, scale: float, answer: wp.vec4, normal: wp.vec3
+                      ) -> tuple[wp.vec4, wp.vec3]:
   """A box prism's GJK/EPA answer, or the exact one (box_prism_contact) where GJK/EPA's cannot be
   right: none where the two penetrate, one deeper than their exact penetration, or a normal into
   the terrain. MuJoCo Warp's float32 GJK/EPA on a prism a box's face rests on is ill-conditioned
   (the last bits of the input move its answer by millimetres) and returns such answers, a normal
   straight up or down with a wrong depth among them. An answer only short of the exact depth is
   kept: MuJoCo C's EPA stops short on many of the same prisms, at the same places, and the exact
-  answer there would move the contact off C's."""
-  dx, dy = cell_size(hfield)
-  scale = _scale(tp, dx, dy)
+  answer there would move the contact off C's. ``scale``: the pair's length scale (_scale)."""
   exact, n = box_prism_contact(p00, wp.where(job == 0, p10, p11), wp.where(job == 0, p11, p01), -hfield.size[3], b,
                                EXACT_FEATURE * scale)
   if exact[3] <= 0.0:
@@ -320,8 +319,9 @@ def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: wp.ref
   job = code % NJOB
   r, c = window_cell(tp, code // NJOB)
   p00, p01, p10, p11, na, nb = cell_corners(hfield, dx, dy, r, c)
+  scale = _scale(tp, dx, dy)
   if box_prism:
-    answer, normal = _box_prism_answer(hfield, b, tp, job, p00, p01, p10, p11, answer, normal)
+    answer, normal = _box_prism_answer(hfield, b, tp, job, p00, p01, p10, p11, scale, answer, normal)
     if answer[3] <= 0.0:
       return
   res = MprResult()
@@ -331,7 +331,7 @@ def add_job_answer(hfield: Heightfield, tp: TerrainPair, b: Shape, cands: wp.ref
   res.normal = normal
   if job < 2:
     if not (_through_border(hfield, r, c, normal)
-            or prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, dx, dy, job, _scale(tp, dx, dy), tol,
+            or prism_answer_kept(cands, res, wp.where(job == 0, na, nb), p00, dx, dy, job, scale, tol,
                                  uses_ccd(b, code))):
       return
   elif wp.dot(normal, na + nb) <= 0.0:
